@@ -1,0 +1,68 @@
+"""The ``selfcal`` command line.
+
+Each sub-command lives in ``selfcal/commands/<name>.py`` and provides
+``add_arguments(parser)`` and ``run(args) -> int``. Exit codes: 0 success,
+2 bad input (one-line reason on stderr), 1 any other failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from selfcal.errors import InputError, SelfcalError
+
+#: Sub-commands in help order: name -> one-line help.
+COMMANDS = {
+    "calibrate": "run the online calibrator over a recording and print/save the calibration",
+    "apply": "write a recording with calibrated specific force in g",
+    "diagnose": "measured vs simulated: find what the base model misses",
+    "simulate": "write a simulated insole recording and its truth",
+    "replay": "long-horizon replay of simulated wear against the truth",
+    "serve": "start the calibration service (FastAPI + SQLite)",
+    "gateway": "run the BLE gateway that forwards insole streams to the service",
+    "demo": "the whole system end to end: service, virtual insoles, gateway",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The top-level argument parser with every available sub-command."""
+    parser = argparse.ArgumentParser(prog="selfcal", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, help_text in COMMANDS.items():
+        try:
+            module = importlib.import_module(f"selfcal.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"selfcal.commands.{name}":
+                continue  # not built yet
+            raise
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.add_argument("--config", metavar="FILE", help="TOML file overriding configs/default.toml")
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``selfcal`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except InputError as exc:
+        print(f"selfcal {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except SelfcalError as exc:
+        print(f"selfcal {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"selfcal {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,66 @@
+"""Configuration files (TOML).
+
+Each module owns the pydantic model of its own section (``[detector]`` is validated by
+``selfcal.detect.DetectorConfig``, ``[fit]`` by ``selfcal.fit.FitConfig`` and so on);
+this module only finds, reads and merges the files.
+
+The defaults live in ``configs/default.toml`` (every threshold named and commented);
+a user file passed with ``--config FILE`` overrides any subset of keys.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from selfcal.errors import InputError
+
+#: The repository's default configuration file (also shipped next to the package).
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "configs" / "default.toml"
+
+
+def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """Read one TOML file; a parse error names the file and the position."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError as exc:
+        raise InputError(f"{path}: config file not found") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{path}: invalid TOML: {exc}") from exc
+
+
+def load_config(path: str | Path | None = None) -> dict[str, Any]:
+    """Return the merged configuration: defaults, overridden by ``path`` if given.
+
+    Returns a dict of sections (``{"detector": {...}, "fit": {...}, ...}``); each
+    consumer validates its own section with its pydantic model.
+    """
+    cfg: dict[str, Any] = {}
+    if DEFAULT_CONFIG_PATH.exists():
+        cfg = read_toml(DEFAULT_CONFIG_PATH)
+    if path is not None:
+        cfg = _merge(cfg, read_toml(path))
+    return cfg
+
+
+def section(cfg: dict[str, Any] | None, name: str) -> dict[str, Any]:
+    """The section ``name`` of a loaded config (empty dict if absent)."""
+    if not cfg:
+        return {}
+    value = cfg.get(name, {})
+    if not isinstance(value, dict):
+        raise InputError(f"config: [{name}] must be a table, got {type(value).__name__}")
+    return value
