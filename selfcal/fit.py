@@ -1,0 +1,812 @@
+"""Fitting: initial values, observability-aware Levenberg-Marquardt, uncertainty, guard.
+
+The problem (method.md §1): find the parameters ``theta`` of an error model so that
+calibrated still poses have unit norm. selfcal solves the *maximum a posteriori*
+version of it:
+
+    cost(theta) = 1/2 sum_k (r_k(theta) / sigma_k)^2 + 1/2 (theta - mu)^T Lambda (theta - mu)
+
+with ``r_k = ||a_k|| - 1`` (g), ``sigma_k`` the standard deviation of that residual for
+pose ``k`` (from the pose's own noise and sample count, plus a floor for what the
+model does not explain), and a Gaussian prior ``N(mu, Lambda^-1)``: the previous model
+and its covariance in the online calibrator, the datasheet tolerances before the first
+fit. Directions of parameter space that the poses do not determine (most of them for
+an insole that is flat most of the time) are held by the prior instead of wandering
+with the noise, and are reported as undetermined.
+
+All fitting happens on normalised data ``u = (raw - center)/scale`` (see
+:class:`selfcal.models.Normalizer`), so the parameters are O(1) in every unit; results
+are converted back to the recording's unit at the end.
+
+Levenberg-Marquardt (``lm_solve``)
+----------------------------------
+Marquardt-scaled damping ``(A + lambda diag(A)) delta = -g``, step acceptance by the
+gain ratio ``rho = actual / predicted`` reduction (Nielsen's lambda update; a step that
+raises the cost is rejected and lambda multiplied by a growing factor). It stops when
+(1) the relative predicted decrease falls below ``ftol``, (2) the step is below
+``xtol * (||theta|| + xtol)``, (3) the scaled gradient ``max |g_j| / sqrt(A_jj)`` is
+below ``gtol``, or (4) after ``max_iter`` iterations (``status = 0``, not converged).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from selfcal.errors import InputError
+from selfcal.models import ErrorModel, Normalizer
+
+# --------------------------------------------------------------------------- config
+
+
+class FitConfig(BaseModel):
+    """The ``[fit]`` section: LM tolerances, noise model and the datasheet prior."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_iter: int = Field(100, ge=1, description="LM iteration limit")
+    ftol: float = Field(1e-12, gt=0, description="stop: relative predicted cost decrease")
+    xtol: float = Field(1e-10, gt=0, description="stop: relative step size")
+    gtol: float = Field(1e-10, gt=0, description="stop: scaled gradient")
+    sigma_floor_g: float = Field(
+        3e-4, ge=0, description="floor added (in quadrature) to every pose's residual sd, g"
+    )
+    default_sample_sd_g: float = Field(
+        3e-3, gt=0, description="per-axis sample sd assumed when a pose has no sd, g"
+    )
+    # datasheet prior (1 sigma), in g-normalised units
+    prior_bias_g: float = Field(0.1, gt=0, description="prior sd of the offsets, g")
+    prior_scale_rel: float = Field(0.05, gt=0, description="prior sd of the scales, relative")
+    prior_nonorth_rad: float = Field(0.02, gt=0, description="prior sd of nxy, nxz, nyz, rad")
+    prior_seed_angle_rad: float = Field(0.02, gt=0, description="prior sd of seed9 angles, rad")
+    prior_temp_bias_g_per_c: float = Field(2e-3, gt=0, description="prior sd, g/degC")
+    prior_temp_scale_per_c: float = Field(1e-3, gt=0, description="prior sd, 1/degC")
+    prior_drift_g_per_day: float = Field(5e-3, gt=0, description="prior sd, g/day")
+    prior_nonlin_per_g: float = Field(0.02, gt=0, description="prior sd of q, 1/g")
+    determined_ratio: float = Field(
+        0.5, gt=0, lt=1,
+        description="a parameter is determined when the data shrink its prior sd by this factor",
+    )
+    axis_tol_g: float = Field(
+        0.12, gt=0, description="axis-aligned pose: one axis within this of +-1 g, others within it of 0"
+    )
+    chi2_restart: float = Field(
+        9.0, gt=0, description="reduced chi2 above which LM is restarted from the other initial values"
+    )
+
+    @classmethod
+    def from_section(cls, section: dict[str, Any] | None) -> "FitConfig":
+        """Validate the ``[fit]`` TOML section."""
+        return cls(**(section or {}))
+
+
+class GuardConfig(BaseModel):
+    """The ``[guard]`` section: when a new model may replace the current one."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    heldout_every: int = Field(5, ge=2, description="hold out every k-th pose (by pose id)")
+    min_heldout: int = Field(3, ge=1, description="fewer held-out poses: compare on all poses")
+    tolerance_rel: float = Field(0.05, ge=0, description="allowed relative held-out RMS increase")
+    tolerance_mg: float = Field(0.05, ge=0, description="allowed absolute held-out RMS increase, mg")
+    min_poses: int = Field(6, ge=1, description="fewer poses: insufficient_coverage")
+    min_determined: int = Field(
+        1, ge=1, description="fewer determined parameter directions: insufficient_coverage"
+    )
+    max_bias_g: float = Field(0.5, gt=0, description="plausible |offset|, g")
+    max_scale_dev: float = Field(0.25, gt=0, description="plausible |scale - 1| (normalised)")
+    max_nonorth_rad: float = Field(0.1, gt=0, description="plausible |nxy|, |nxz|, |nyz|, rad")
+    max_temp_bias_g_per_c: float = Field(0.01, gt=0)
+    max_temp_scale_per_c: float = Field(0.005, gt=0)
+    max_drift_g_per_day: float = Field(0.05, gt=0)
+    max_nonlin_per_g: float = Field(0.1, gt=0)
+    max_residual_rms_mg: float = Field(30.0, gt=0, description="fit residual RMS above this: implausible")
+
+    @classmethod
+    def from_section(cls, section: dict[str, Any] | None) -> "GuardConfig":
+        """Validate the ``[guard]`` TOML section."""
+        return cls(**(section or {}))
+
+
+# --------------------------------------------------------------------------- data
+
+
+@dataclass
+class PoseData:
+    """Still poses to fit.
+
+    Attributes
+    ----------
+    mean : ndarray, shape (n, 3), raw unit — mean specific force of each window
+    sd : ndarray, shape (n, 3), raw unit, or None — per-axis sample sd in the window
+    count : ndarray, shape (n,) — samples in each window (1 if unknown)
+    t_s : ndarray, shape (n,), s — time of each window (centre)
+    temp_c : ndarray, shape (n,), degC, or None
+    """
+
+    mean: np.ndarray
+    sd: np.ndarray | None = None
+    count: np.ndarray | None = None
+    t_s: np.ndarray | None = None
+    temp_c: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.mean = np.asarray(self.mean, dtype=float)
+        if self.mean.ndim != 2 or self.mean.shape[1] != 3:
+            raise InputError(f"poses: mean must have shape (n, 3), got {self.mean.shape}")
+        n = self.mean.shape[0]
+        if n == 0:
+            raise InputError("poses: no still pose")
+        bad = ~np.all(np.isfinite(self.mean), axis=1)
+        if bad.any():
+            raise InputError(f"poses: mean has NaN/inf in rows {np.flatnonzero(bad)[:10].tolist()}")
+        if self.sd is not None:
+            self.sd = np.asarray(self.sd, dtype=float).reshape(n, 3)
+            if not np.all(np.isfinite(self.sd)) or np.any(self.sd < 0):
+                raise InputError("poses: sd must be finite and >= 0")
+        self.count = np.ones(n) if self.count is None else np.asarray(self.count, dtype=float).reshape(n)
+        if np.any(~np.isfinite(self.count)) or np.any(self.count < 1):
+            raise InputError("poses: count must be >= 1")
+        self.t_s = np.zeros(n) if self.t_s is None else np.asarray(self.t_s, dtype=float).reshape(n)
+        if self.temp_c is not None:
+            self.temp_c = np.asarray(self.temp_c, dtype=float).reshape(n)
+            if not np.all(np.isfinite(self.temp_c)):
+                self.temp_c = None if np.all(~np.isfinite(self.temp_c)) else self.temp_c
+
+    def __len__(self) -> int:
+        return self.mean.shape[0]
+
+    def subset(self, idx: np.ndarray) -> "PoseData":
+        """The poses at ``idx`` (bool mask or integer indices)."""
+        return PoseData(
+            self.mean[idx],
+            None if self.sd is None else self.sd[idx],
+            self.count[idx],
+            self.t_s[idx],
+            None if self.temp_c is None else self.temp_c[idx],
+        )
+
+
+@dataclass
+class Prior:
+    """Gaussian prior on normalised parameters: ``N(mean, cov)``, shapes (p,), (p, p)."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+
+    def precision(self) -> np.ndarray:
+        """Inverse covariance (p, p)."""
+        return np.linalg.inv(self.cov)
+
+    def to_json(self) -> dict:
+        return {"mean": self.mean.tolist(), "cov": self.cov.tolist()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Prior":
+        return cls(np.asarray(d["mean"], dtype=float), np.asarray(d["cov"], dtype=float))
+
+
+def datasheet_prior(model: ErrorModel, cfg: FitConfig | None = None, inflate: float = 1.0) -> Prior:
+    """Prior from consumer-MEMS datasheet tolerances around the nominal model.
+
+    ``inflate`` multiplies every sd (use a large value for an essentially flat prior).
+    """
+    cfg = cfg or FitConfig()
+    sd = np.empty(model.n_params)
+    sd[0:3] = cfg.prior_bias_g
+    sd[3:6] = cfg.prior_scale_rel
+    if model.base == "affine9":
+        sd[6:9] = cfg.prior_nonorth_rad
+    elif model.base == "seed9":
+        sd[6:9] = cfg.prior_seed_angle_rad
+    per_effect = {
+        "temperature_bias": cfg.prior_temp_bias_g_per_c,
+        "temperature_scale": cfg.prior_temp_scale_per_c,
+        "time_drift_bias": cfg.prior_drift_g_per_day,
+        "scale_nonlinearity": cfg.prior_nonlin_per_g,
+    }
+    for eff in model.effects:
+        sd[model.index(eff)] = per_effect[eff]
+    sd = sd * inflate
+    return Prior(model.nominal(), np.diag(sd**2))
+
+
+# --------------------------------------------------------------------------- noise
+
+
+def pose_sigma(mean_u: np.ndarray, sd_u: np.ndarray | None, count: np.ndarray, cfg: FitConfig) -> np.ndarray:
+    """Standard deviation (g) of each pose's norm residual, shape (n,).
+
+    The residual of a pose is the noise of its mean projected on the gravity
+    direction: ``sqrt(sum_i (g_i sd_i)^2 / count)``, plus ``sigma_floor_g`` in
+    quadrature for what the model does not explain.
+    """
+    norm = np.linalg.norm(mean_u, axis=1, keepdims=True)
+    ghat = mean_u / np.where(norm > 0, norm, 1.0)
+    if sd_u is None:
+        sd_u = np.full_like(mean_u, cfg.default_sample_sd_g)
+    var = np.einsum("ij,ij->i", ghat**2, sd_u**2) / count
+    return np.sqrt(var + cfg.sigma_floor_g**2)
+
+
+# --------------------------------------------------------------------------- LM
+
+
+@dataclass
+class LMResult:
+    """Outcome of :func:`lm_solve` (normalised units)."""
+
+    x: np.ndarray
+    cost: float
+    fun: np.ndarray  # residuals, g
+    jac: np.ndarray  # (n, p)
+    n_iter: int
+    nfev: int
+    status: int
+    message: str
+
+    @property
+    def success(self) -> bool:
+        return self.status > 0
+
+
+TERMINATION_MESSAGES = {
+    0: "the maximum number of iterations was reached",
+    1: "the relative predicted cost decrease is below ftol",
+    2: "the relative step is below xtol",
+    3: "the scaled gradient is below gtol",
+    -1: "the cost is not finite at the initial value",
+}
+
+
+def lm_solve(
+    model: ErrorModel,
+    theta0: np.ndarray,
+    raw_u: np.ndarray,
+    sigma: np.ndarray,
+    prior: Prior | None,
+    temp_c: np.ndarray | None = None,
+    t_s: np.ndarray | None = None,
+    cfg: FitConfig | None = None,
+) -> LMResult:
+    """Levenberg-Marquardt on the weighted norm residuals plus a Gaussian prior.
+
+    Parameters
+    ----------
+    model : ErrorModel
+    theta0 : ndarray, shape (p,) — initial value (normalised units)
+    raw_u : ndarray, shape (n, 3) — normalised pose means (~g)
+    sigma : ndarray, shape (n,), g — residual sd of each pose
+    prior : Prior or None — None means no prior (maximum likelihood)
+    temp_c, t_s : ndarray, shape (n,) — covariates of the effects, if any
+    cfg : FitConfig
+    """
+    cfg = cfg or FitConfig()
+    winv = 1.0 / sigma
+    p = model.n_params
+    if prior is not None:
+        lam_p = prior.precision()
+        mu = prior.mean
+    else:
+        lam_p = np.zeros((p, p))
+        mu = np.zeros(p)
+
+    def evaluate(theta):
+        r, j = model.residual_jac(theta, raw_u, temp_c, t_s)
+        rw = r * winv
+        jw = j * winv[:, None]
+        d = theta - mu
+        cost = 0.5 * (rw @ rw + d @ lam_p @ d)
+        return r, j, rw, jw, d, cost
+
+    theta = np.asarray(theta0, dtype=float).copy()
+    r, j, rw, jw, d, cost = evaluate(theta)
+    nfev = 1
+    if not np.isfinite(cost):
+        return LMResult(theta, float(cost), r, j, 0, nfev, -1, TERMINATION_MESSAGES[-1])
+    a = jw.T @ jw + lam_p
+    g = jw.T @ rw + lam_p @ d
+    diag = np.maximum(np.diag(a), 1e-12 * max(np.max(np.diag(a)), 1e-300))
+    lam = 1e-3
+    nu = 2.0
+    status = 0
+    it = 0
+    for it in range(1, cfg.max_iter + 1):
+        if np.max(np.abs(g) / np.sqrt(diag)) < cfg.gtol:
+            status = 3
+            break
+        try:
+            step = -np.linalg.solve(a + lam * np.diag(diag), g)
+        except np.linalg.LinAlgError:
+            lam *= nu
+            nu *= 2.0
+            continue
+        pred = -(g @ step + 0.5 * step @ a @ step)
+        theta_new = theta + step
+        r_n, j_n, rw_n, jw_n, d_n, cost_n = evaluate(theta_new)
+        nfev += 1
+        actual = cost - cost_n
+        rho = actual / pred if pred > 0 else -1.0
+        if np.isfinite(cost_n) and rho > 0:
+            small_step = np.linalg.norm(step) <= cfg.xtol * (np.linalg.norm(theta) + cfg.xtol)
+            small_dec = pred <= cfg.ftol * max(cost, 1e-300)
+            theta, r, j, rw, jw, d, cost = theta_new, r_n, j_n, rw_n, jw_n, d_n, cost_n
+            a = jw.T @ jw + lam_p
+            g = jw.T @ rw + lam_p @ d
+            diag = np.maximum(diag, np.diag(a))  # More's scaling: non-decreasing
+            lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            nu = 2.0
+            if small_dec:
+                status = 1
+                break
+            if small_step:
+                status = 2
+                break
+        else:
+            if pred <= cfg.ftol * max(cost, 1e-300):
+                status = 1
+                break
+            lam *= nu
+            nu *= 2.0
+    return LMResult(theta, float(cost), r, j, it, nfev, status, TERMINATION_MESSAGES[status])
+
+
+# --------------------------------------------------------------------------- initial values
+
+
+def axis_aligned_mask(mean_u: np.ndarray, tol_g: float) -> np.ndarray:
+    """Poses with one axis near +-1 g and the other two near 0 (the paper's O_cor), (n,) bool."""
+    absu = np.abs(mean_u)
+    k = np.argmax(absu, axis=1)
+    rows = np.arange(len(mean_u))
+    big = absu[rows, k]
+    off = absu.copy()
+    off[rows, k] = 0.0
+    return (np.abs(big - 1.0) < tol_g) & (off.max(axis=1) < tol_g)
+
+
+def ls_axis_aligned(model: ErrorModel, mean_u: np.ndarray, mask: np.ndarray, ridge: float = 1e-3) -> np.ndarray | None:
+    """The insole paper's linear least-squares initial value from axis-aligned poses.
+
+    With the gravity direction of each axis-aligned pose known (the sign of its big
+    axis), ``g_k = M u_k - c`` is linear in ``(M, c)``; rows of ``M`` are solved one
+    axis at a time with a small ridge toward the nominal model, so that rows the poses
+    do not determine stay nominal. Returns normalised parameters (p,) or None.
+    """
+    if mask.sum() < 1:
+        return None
+    u = mean_u[mask]
+    k = np.argmax(np.abs(u), axis=1)
+    gdir = np.zeros_like(u)
+    gdir[np.arange(len(u)), k] = np.sign(u[np.arange(len(u)), k])
+    design = np.hstack([u, -np.ones((len(u), 1))])  # unknowns: M_i0, M_i1, M_i2, c_i
+    m = np.zeros((3, 3))
+    c = np.zeros(3)
+    lhs = design.T @ design + ridge * np.eye(4)
+    for i in range(3):
+        nominal = np.zeros(4)
+        nominal[i] = 1.0
+        sol = np.linalg.solve(lhs, design.T @ gdir[:, i] + ridge * nominal)
+        m[i] = sol[:3]
+        c[i] = sol[3]
+    try:
+        offset = np.linalg.solve(m, c)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(offset)) or np.linalg.det(m) <= 0:
+        return None
+    return model.from_linear(m, offset)
+
+
+def quadric_fit(model: ErrorModel, mean_u: np.ndarray, min_rel_sv: float = 1e-4) -> np.ndarray | None:
+    """General quadric (ellipsoid) fit: a linear initial value needing no start point.
+
+    Solves ``[x², y², z², 2xy, 2xz, 2yz, 2x, 2y, 2z] v = 1`` by least squares; the
+    centre is the offset and a Cholesky factor of the normalised quadric form the
+    matrix. Returns None when the poses do not determine the quadric (flat-heavy sets:
+    relative singular value below ``min_rel_sv``) or the fit is not an ellipsoid.
+    """
+    if len(mean_u) < 9:
+        return None
+    x, y, z = mean_u.T
+    design = np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, 2 * x, 2 * y, 2 * z])
+    try:
+        v, _, rank, sv = np.linalg.lstsq(design, np.ones(len(x)), rcond=None)
+    except np.linalg.LinAlgError:
+        return None
+    if rank < 9 or sv[-1] < min_rel_sv * sv[0]:
+        return None
+    a = np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])
+    b = v[6:9]
+    try:
+        center = -np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:
+        return None
+    k = 1.0 + center @ a @ center
+    if k <= 0:
+        return None
+    try:
+        low = np.linalg.cholesky(a / k)
+    except np.linalg.LinAlgError:
+        return None
+    return model.from_linear(low.T, center)
+
+
+# --------------------------------------------------------------------------- result
+
+
+@dataclass
+class FitResult:
+    """Everything a fit knows, in the recording's unit and in normalised units.
+
+    ``params``/``cov``/``std`` are in the recording's unit (offsets in raw units,
+    scales in g per raw unit); ``*_u`` are the normalised values the fit worked with.
+    """
+
+    model: ErrorModel
+    normalizer: Normalizer
+    params: np.ndarray
+    cov: np.ndarray
+    std: np.ndarray
+    theta_u: np.ndarray
+    cov_u: np.ndarray
+    crlb_std: np.ndarray  # raw unit; inf where the poses carry no information
+    determined: np.ndarray  # (p,) bool
+    shrink_ratio: np.ndarray  # posterior sd / prior sd, (p,)
+    n_determined_directions: int
+    undetermined_directions: list[dict[str, float]]
+    residuals_g: np.ndarray
+    sigma_g: np.ndarray
+    residual_rms_mg: float
+    chi2_red: float
+    n_poses: int
+    n_iter: int
+    nfev: int
+    status: int
+    message: str
+    initial_value: str
+    fit_ms: float
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def success(self) -> bool:
+        return self.status > 0
+
+    def linear(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(matrix (3,3), offset (3,) raw unit)`` with ``a_g = matrix @ (raw - offset)``."""
+        return self.model.linear(self.params)
+
+    def apply(self, raw: np.ndarray, temp_c=None, t_s=None) -> np.ndarray:
+        """Calibrate raw readings (n,3) raw unit -> (n,3) g."""
+        return self.model.apply(self.theta_u, self.normalizer.to_u(raw), temp_c, t_s)
+
+    def to_calibration(self, unit: str = "g") -> dict:
+        """The calibration JSON of the design contract."""
+        matrix, offset = self.linear()
+        names = self.model.param_names
+        return {
+            "format": "selfcal-calibration",
+            "format_version": 1,
+            "model": self.model.name,
+            "unit": unit,
+            "params": self.model.to_dict(self.params),
+            "std": {n: float(s) for n, s in zip(names, self.std)},
+            "crlb_std": {n: (float(s) if np.isfinite(s) else None) for n, s in zip(names, self.crlb_std)},
+            "determined": [n for n, d in zip(names, self.determined) if d],
+            "undetermined": [n for n, d in zip(names, self.determined) if not d],
+            "undetermined_directions": self.undetermined_directions,
+            "n_poses": int(self.n_poses),
+            "residual_rms_mg": float(self.residual_rms_mg),
+            "chi2_red": float(self.chi2_red),
+            "matrix": matrix.tolist(),
+            "offset": offset.tolist(),
+            "temp_ref_c": self.model.temp_ref_c,
+            "t_ref_s": self.model.t_ref_s,
+            "converged": bool(self.success),
+            "fit": {
+                "n_iter": self.n_iter,
+                "nfev": self.nfev,
+                "message": self.message,
+                "initial_value": self.initial_value,
+                "fit_ms": self.fit_ms,
+            },
+        }
+
+
+def _direction_dicts(model: ErrorModel, vecs: np.ndarray) -> list[dict[str, float]]:
+    out = []
+    for v in vecs.T:
+        order = np.argsort(-np.abs(v))[:3]
+        sgn = np.sign(v[order[0]]) or 1.0
+        out.append({model.param_names[i]: round(float(sgn * v[i]), 3) for i in order if abs(v[i]) > 0.05})
+    return out
+
+
+def observability(
+    model: ErrorModel, jac_w: np.ndarray, prior: Prior, ratio: float
+) -> tuple[np.ndarray, np.ndarray, int, list[dict[str, float]], np.ndarray]:
+    """Which parameter directions the poses determine.
+
+    Parameters
+    ----------
+    jac_w : ndarray, shape (n, p) — Jacobian of the whitened residuals ``r/sigma``
+    prior : Prior
+    ratio : float — determined when the posterior sd is below ``ratio`` x prior sd
+
+    Returns
+    -------
+    determined : (p,) bool, per parameter
+    shrink : (p,) posterior sd / prior sd
+    n_directions : number of prior-whitened eigen-directions the data determine
+    undetermined : list of {param: weight} for the directions they do not
+    eigvals : (p,) eigenvalues of the prior-whitened Fisher information, descending
+    """
+    fisher = jac_w.T @ jac_w
+    low = np.linalg.cholesky(prior.cov)
+    fw = low.T @ fisher @ low
+    evals, evecs = np.linalg.eigh(fw)
+    evals, evecs = evals[::-1], evecs[:, ::-1]
+    threshold = 1.0 / ratio**2 - 1.0
+    det_dir = evals >= threshold
+    post = np.linalg.inv(fisher + prior.precision())
+    shrink = np.sqrt(np.diag(post) / np.diag(prior.cov))
+    # undetermined directions, mapped back to parameter space (unit vectors)
+    und = low @ evecs[:, ~det_dir]
+    if und.size:
+        und = und / np.linalg.norm(und, axis=0, keepdims=True)
+    return shrink < ratio, shrink, int(det_dir.sum()), _direction_dicts(model, und), evals
+
+
+def cramer_rao_std(jac: np.ndarray, sigma: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
+    """Cramér-Rao bound (sd) for a pose set with unknown orientations, shape (p,).
+
+    Each pose carries one scalar of information: its norm along the calibrated gravity
+    direction (the two orientation angles are nuisance parameters and take the rest).
+    ``jac`` is the norm-residual Jacobian (n, p) at the true parameters and ``sigma``
+    (n,) the residual sd (g). Parameters the poses do not determine get ``inf``.
+    """
+    jw = jac / sigma[:, None]
+    fisher = jw.T @ jw
+    evals, evecs = np.linalg.eigh(fisher)
+    keep = evals > rcond * max(evals.max(), 1e-300)
+    inv = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T
+    var = np.diag(inv).copy()
+    # a parameter with weight on a null direction is undetermined
+    null_weight = np.sum(evecs[:, ~keep] ** 2, axis=1)
+    var[null_weight > 1e-6] = np.inf
+    return np.sqrt(var)
+
+
+# --------------------------------------------------------------------------- front end
+
+
+def guess_normalizer(unit: str, mean: np.ndarray | None = None) -> Normalizer:
+    """Normaliser for a unit: exact for g and m/s², a sphere fit of ``mean`` for counts."""
+    if unit == "g":
+        return Normalizer()
+    if unit == "mps2":
+        from selfcal import STANDARD_GRAVITY_MPS2
+
+        return Normalizer((0.0, 0.0, 0.0), STANDARD_GRAVITY_MPS2)
+    if unit == "counts":
+        if mean is None:
+            raise InputError("counts: a sphere fit of still poses is needed to normalise raw counts")
+        return sphere_normalizer(mean)
+    raise InputError(f"unit: unknown acceleration unit {unit!r} (g, mps2, counts)")
+
+
+def sphere_normalizer(mean: np.ndarray) -> Normalizer:
+    """Centre and radius of the sphere through still-pose means (raw counts), by linear LS.
+
+    Raises InputError when the poses do not determine a sphere (fewer than 4, or all in
+    one plane/orientation).
+    """
+    mean = np.asarray(mean, dtype=float)
+    if len(mean) < 4:
+        raise InputError(
+            f"counts: {len(mean)} still pose(s); at least 4 distinct orientations are needed "
+            "to find the counts-per-g scale of a raw-counts recording"
+        )
+    ref = mean.mean(axis=0)
+    spread = max(float(np.abs(mean - ref).max()), 1e-300)
+    x = (mean - ref) / spread  # conditioned: O(1) columns
+    design = np.hstack([2 * x, np.ones((len(x), 1))])
+    rhs = np.einsum("ij,ij->i", x, x)
+    sol, _, rank, sv = np.linalg.lstsq(design, rhs, rcond=None)
+    if rank < 4 or sv[-1] < 1e-3 * sv[0]:
+        raise InputError("counts: the still poses do not span enough orientations to fit a sphere")
+    center_x = sol[:3]
+    r2 = (sol[3] + center_x @ center_x) * spread**2
+    center = ref + center_x * spread
+    if r2 <= 0:
+        raise InputError("counts: sphere fit failed (negative radius)")
+    return Normalizer(tuple(float(c) for c in center), float(np.sqrt(r2)))
+
+
+def fit_poses(
+    model: ErrorModel | str,
+    poses: PoseData,
+    *,
+    normalizer: Normalizer | None = None,
+    prior: Prior | None = None,
+    theta0_u: np.ndarray | None = None,
+    cfg: FitConfig | None = None,
+) -> FitResult:
+    """Fit an error model to still poses (MAP with a Gaussian prior).
+
+    Parameters
+    ----------
+    model : ErrorModel or name
+    poses : PoseData — in the recording's unit
+    normalizer : Normalizer — raw -> ~g; default identity (poses already in g)
+    prior : Prior on normalised parameters; default :func:`datasheet_prior`
+    theta0_u : ndarray, shape (p,) — an initial value to consider (warm start or, as
+        in the insole paper's test, a random one); the fit also considers the prior
+        mean, the axis-aligned least-squares value and the quadric fit, and starts
+        from whichever has the lowest cost.
+    cfg : FitConfig
+
+    Returns
+    -------
+    FitResult
+    """
+    t0 = time.perf_counter()
+    model = ErrorModel(model) if isinstance(model, str) else model
+    cfg = cfg or FitConfig()
+    normalizer = normalizer or Normalizer()
+    prior = prior or datasheet_prior(model, cfg)
+    if prior.mean.shape != (model.n_params,):
+        raise InputError(f"prior: expected {model.n_params} parameters for {model.name}")
+    raw_u = normalizer.to_u(poses.mean)
+    sd_u = None if poses.sd is None else poses.sd / normalizer.scale
+    sigma = pose_sigma(raw_u, sd_u, poses.count, cfg)
+    temp = poses.temp_c
+    if temp is None and any(e.startswith("temperature") for e in model.effects):
+        raise InputError(f"model {model.name} needs temperatures (temp_c) for every pose")
+    t_s = poses.t_s
+
+    def cost_of(theta):
+        r = model.residuals(theta, raw_u, temp, t_s) / sigma
+        d = theta - prior.mean
+        c = 0.5 * (r @ r + d @ prior.precision() @ d)
+        return c if np.isfinite(c) else np.inf
+
+    candidates: list[tuple[str, np.ndarray]] = []
+    if theta0_u is not None:
+        candidates.append(("given", np.asarray(theta0_u, dtype=float)))
+    candidates.append(("prior", prior.mean.copy()))
+    mask = axis_aligned_mask(raw_u, cfg.axis_tol_g)
+    ls = ls_axis_aligned(model.with_effects(()), raw_u, mask)
+    if ls is not None:
+        candidates.append(("least_squares_axis_aligned", model.extend_theta(ls, model.with_effects(()))))
+    quad = quadric_fit(model.with_effects(()), raw_u)
+    if quad is not None:
+        candidates.append(("quadric", model.extend_theta(quad, model.with_effects(()))))
+    costs = [cost_of(th) for th in candidates_thetas(candidates)]
+    order = np.argsort(costs)
+    best: LMResult | None = None
+    best_name = ""
+    tried = 0
+    for idx in order:
+        name, th = candidates[idx]
+        if not np.isfinite(costs[idx]):
+            continue
+        res = lm_solve(model, th, raw_u, sigma, prior, temp, t_s, cfg)
+        tried += 1
+        if best is None or res.cost < best.cost:
+            best, best_name = res, name
+        chi2 = 2 * best.cost / max(len(raw_u), 1)
+        if best.success and chi2 < cfg.chi2_restart:
+            break
+    if best is None:
+        raise InputError("fit: every initial value gives a non-finite cost (check the data)")
+
+    # uncertainty
+    jw = best.jac / sigma[:, None]
+    rw = best.fun / sigma
+    fisher = jw.T @ jw
+    lam_p = prior.precision()
+    post0 = np.linalg.inv(fisher + lam_p)
+    p_eff = float(np.trace(post0 @ fisher))
+    dof = max(len(raw_u) - p_eff, 1.0)
+    chi2_red = float(rw @ rw / dof)
+    infl = max(1.0, chi2_red)
+    cov_u = np.linalg.inv(fisher / infl + lam_p)
+    cov_u = 0.5 * (cov_u + cov_u.T)
+    determined, shrink, n_dir, und, _ = observability(model, jw / np.sqrt(infl), prior, cfg.determined_ratio)
+    crlb_u = cramer_rao_std(best.jac, sigma * np.sqrt(infl))
+    params = normalizer.theta_to_raw(model, best.x)
+    cov = normalizer.cov_to_raw(model, cov_u)
+    crlb = crlb_u * normalizer.param_scale(model)
+    fit_ms = (time.perf_counter() - t0) * 1e3
+    return FitResult(
+        model=model,
+        normalizer=normalizer,
+        params=params,
+        cov=cov,
+        std=np.sqrt(np.maximum(np.diag(cov), 0.0)),
+        theta_u=best.x,
+        cov_u=cov_u,
+        crlb_std=crlb,
+        determined=determined,
+        shrink_ratio=shrink,
+        n_determined_directions=n_dir,
+        undetermined_directions=und,
+        residuals_g=best.fun,
+        sigma_g=sigma,
+        residual_rms_mg=float(np.sqrt(np.mean(best.fun**2)) * 1e3),
+        chi2_red=chi2_red,
+        n_poses=len(raw_u),
+        n_iter=best.n_iter,
+        nfev=best.nfev,
+        status=best.status,
+        message=best.message,
+        initial_value=best_name,
+        fit_ms=fit_ms,
+        extra={"starts_tried": tried},
+    )
+
+
+def candidates_thetas(candidates: list[tuple[str, np.ndarray]]) -> list[np.ndarray]:
+    """The parameter vectors of a candidate list (helper for readability)."""
+    return [th for _, th in candidates]
+
+
+# --------------------------------------------------------------------------- guard
+
+
+@dataclass
+class GuardDecision:
+    """Whether a candidate model may be published, and why not."""
+
+    publish: bool
+    reason: str | None
+    message: str
+    heldout_rms_mg_new: float | None = None
+    heldout_rms_mg_current: float | None = None
+
+    def to_dict(self) -> dict:
+        return {
+            "published": self.publish,
+            "reason": self.reason,
+            "message": self.message,
+            "heldout_rms_mg_new": self.heldout_rms_mg_new,
+            "heldout_rms_mg_current": self.heldout_rms_mg_current,
+        }
+
+
+def implausible(model: ErrorModel, theta_u: np.ndarray, cfg: GuardConfig) -> str | None:
+    """A message naming the first parameter outside its plausible range, or None."""
+    checks = [("b", cfg.max_bias_g, 0.0), ("s", cfg.max_scale_dev, 1.0)]
+    if model.base != "scale6":
+        checks.append(("n", cfg.max_nonorth_rad, 0.0))
+    limits = {
+        "temperature_bias": cfg.max_temp_bias_g_per_c,
+        "temperature_scale": cfg.max_temp_scale_per_c,
+        "time_drift_bias": cfg.max_drift_g_per_day,
+        "scale_nonlinearity": cfg.max_nonlin_per_g,
+    }
+    checks += [(e, limits[e], 0.0) for e in model.effects]
+    for key, lim, centre in checks:
+        sl = model.index(key)
+        vals = theta_u[sl] - centre
+        bad = np.flatnonzero(np.abs(vals) > lim)
+        if bad.size:
+            name = model.param_names[sl.start + bad[0]]
+            return f"{name} = {theta_u[sl][bad[0]]:.4g} (normalised) is outside its plausible range ±{lim:g}"
+    return None
+
+
+def heldout_mask(pose_ids: np.ndarray, every: int) -> np.ndarray:
+    """Deterministic held-out split: poses whose id is a multiple of ``every``."""
+    return (np.asarray(pose_ids) % every) == 0
+
+
+def rms_mg(model: ErrorModel, theta_u: np.ndarray, normalizer: Normalizer, poses: PoseData) -> float:
+    """RMS of the norm residuals (mg) of ``poses`` under a model."""
+    r = model.residuals(theta_u, normalizer.to_u(poses.mean), poses.temp_c, poses.t_s)
+    return float(np.sqrt(np.mean(r**2)) * 1e3)

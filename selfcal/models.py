@@ -1,0 +1,394 @@
+"""Accelerometer error models: parameters, apply, analytic Jacobian of the norm residual.
+
+Every model maps a raw reading ``raw`` (shape ``(n, 3)``, in the recording's unit) to
+calibrated specific force ``a`` in **g**. Its linear part at the reference conditions is
+``a = matrix @ (raw - offset)`` (design contract). The fit minimises the norm residual
+``r = ||a|| - 1`` (g), whose Jacobian each model gives analytically.
+
+Base models
+-----------
+``scale6``   offset ``bx, by, bz`` (raw unit) and per-axis scale ``sx, sy, sz``
+             (g per raw unit): ``matrix = diag(s)``.
+``affine9``  ``scale6`` plus upper-triangular non-orthogonality ``nxy, nxz, nyz``
+             (dimensionless, ~rad): ``matrix = diag(s) @ [[1, nxy, nxz], [0, 1, nyz],
+             [0, 0, 1]]``. Every invertible sensor matrix is ``Q @ R`` with ``Q`` a
+             rotation and ``R`` upper triangular; norms see only ``R``, so these 9
+             parameters are exactly what gravity norms can determine.
+``seed9``    the seed document's form ``a = T K (raw + b)`` with
+             ``T = [[1, psi, -theta], [-psi, 1, phi], [theta, -phi, 1]]`` (first-order
+             rotation). Kept to demonstrate that its three angles are not determined by
+             norms (a rotation does not change ``||a||`` at first order).
+
+Effects (extensions; each adds 3 per-axis parameters)
+-----------------------------------------------------
+``temperature_bias``   ``tbx, tby, tbz`` raw unit per degC: offset ``b + tb (T - T_ref)``
+``temperature_scale``  ``tsx, tsy, tsz`` 1/degC: scale ``s (1 + ts (T - T_ref))``
+``time_drift_bias``    ``dbx, dby, dbz`` raw unit per day: offset ``b + db (t - t_ref)/86400``
+``scale_nonlinearity`` ``qx, qy, qz`` 1/g: ``a_i = l_i - q_i l_i**2`` where ``l`` is the
+                       linear calibrated value (g); ``q = 0.002`` is 2 mg/g².
+
+The simulator (``selfcal.sim``) produces the same effects in the forward direction;
+the forms here are their first-order inverses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from selfcal.errors import InputError
+
+SECONDS_PER_DAY = 86400.0
+
+BASE_PARAMS = {
+    "scale6": ("bx", "by", "bz", "sx", "sy", "sz"),
+    "affine9": ("bx", "by", "bz", "sx", "sy", "sz", "nxy", "nxz", "nyz"),
+    "seed9": ("bx", "by", "bz", "sx", "sy", "sz", "psi", "theta", "phi"),
+}
+
+EFFECT_PARAMS = {
+    "temperature_bias": ("tbx", "tby", "tbz"),
+    "temperature_scale": ("tsx", "tsy", "tsz"),
+    "time_drift_bias": ("dbx", "dby", "dbz"),
+    "scale_nonlinearity": ("qx", "qy", "qz"),
+}
+
+#: Units of each parameter family, for documentation and reports ("raw" = recording unit).
+PARAM_UNITS = {
+    "b": "raw", "s": "g/raw", "n": "1", "psi": "rad", "theta": "rad", "phi": "rad",
+    "tb": "raw/degC", "ts": "1/degC", "db": "raw/day", "q": "1/g",
+}
+
+_UPPER = ((0, 1), (0, 2), (1, 2))  # positions of nxy, nxz, nyz
+
+
+def parse_model_name(name: str) -> tuple[str, tuple[str, ...]]:
+    """Split ``"affine9+temperature_bias+..."`` into the base name and effect names."""
+    parts = [p.strip() for p in str(name).split("+") if p.strip()]
+    if not parts or parts[0] not in BASE_PARAMS:
+        raise InputError(
+            f"model: unknown base model {parts[0] if parts else name!r}; "
+            f"choose one of {sorted(BASE_PARAMS)} (optionally +effect)"
+        )
+    effects = tuple(parts[1:])
+    for eff in effects:
+        if eff not in EFFECT_PARAMS:
+            raise InputError(f"model: unknown effect {eff!r}; choose from {sorted(EFFECT_PARAMS)}")
+    if len(set(effects)) != len(effects):
+        raise InputError(f"model: effect repeated in {name!r}")
+    if parts[0] == "seed9" and effects:
+        raise InputError("model: seed9 is a demonstration model and takes no effects")
+    # canonical order, so that names compare equal
+    effects = tuple(e for e in EFFECT_PARAMS if e in effects)
+    return parts[0], effects
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """An accelerometer error model: a base form plus optional effects.
+
+    Parameters
+    ----------
+    name : str
+        ``"scale6"``, ``"affine9"`` or ``"seed9"``, optionally followed by
+        ``"+effect"`` terms (``"affine9+temperature_bias"``).
+    temp_ref_c : float
+        Reference temperature (degC) of the temperature effects.
+    t_ref_s : float
+        Time origin (s) of the drift effect.
+    """
+
+    name: str = "affine9"
+    temp_ref_c: float = 25.0
+    t_ref_s: float = 0.0
+    base: str = field(init=False)
+    effects: tuple[str, ...] = field(init=False)
+    param_names: tuple[str, ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        base, effects = parse_model_name(self.name)
+        object.__setattr__(self, "base", base)
+        object.__setattr__(self, "effects", effects)
+        names = BASE_PARAMS[base] + tuple(n for e in effects for n in EFFECT_PARAMS[e])
+        object.__setattr__(self, "param_names", names)
+        object.__setattr__(self, "name", "+".join((base,) + effects))
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def n_params(self) -> int:
+        """Number of parameters."""
+        return len(self.param_names)
+
+    def index(self, effect: str) -> slice:
+        """Slice of the 3 parameters of ``effect`` (or ``"b"``, ``"s"``, ``"n"``)."""
+        if effect == "b":
+            return slice(0, 3)
+        if effect == "s":
+            return slice(3, 6)
+        if effect == "n":
+            if self.base == "scale6":
+                raise KeyError("scale6 has no non-orthogonality")
+            return slice(6, 9)
+        start = len(BASE_PARAMS[self.base])
+        for e in self.effects:
+            if e == effect:
+                return slice(start, start + 3)
+            start += 3
+        raise KeyError(effect)
+
+    def nominal(self) -> np.ndarray:
+        """Nominal parameters: zero offset, unit scale, no axis error, no effects."""
+        theta = np.zeros(self.n_params)
+        theta[3:6] = 1.0
+        return theta
+
+    def to_dict(self, theta: np.ndarray) -> dict[str, float]:
+        """Parameter vector (p,) -> ``{name: value}``."""
+        theta = np.asarray(theta, dtype=float)
+        if theta.shape != (self.n_params,):
+            raise InputError(f"params: expected {self.n_params} values for {self.name}, got {theta.shape}")
+        return {k: float(v) for k, v in zip(self.param_names, theta)}
+
+    def from_dict(self, params: dict[str, float]) -> np.ndarray:
+        """``{name: value}`` -> parameter vector; missing effect terms default to 0."""
+        theta = self.nominal()
+        unknown = set(params) - set(self.param_names)
+        if unknown:
+            raise InputError(f"params: unknown names {sorted(unknown)} for model {self.name}")
+        for i, n in enumerate(self.param_names):
+            if n in params:
+                theta[i] = float(params[n])
+            elif i < len(BASE_PARAMS[self.base]):
+                raise InputError(f"params: missing {n!r} for model {self.name}")
+        return theta
+
+    def with_effects(self, effects: tuple[str, ...]) -> "ErrorModel":
+        """The same base model with a different set of effects."""
+        return ErrorModel("+".join((self.base,) + tuple(effects)), self.temp_ref_c, self.t_ref_s)
+
+    def extend_theta(self, theta: np.ndarray, other: "ErrorModel") -> np.ndarray:
+        """Map ``theta`` of ``other`` into this model (shared names copied, new ones 0)."""
+        d = other.to_dict(theta)
+        out = self.nominal()
+        for i, n in enumerate(self.param_names):
+            if n in d:
+                out[i] = d[n]
+        return out
+
+    # ------------------------------------------------------------------ linear part
+    def upper(self, theta: np.ndarray) -> np.ndarray:
+        """The unit upper-triangular (affine9), identity (scale6) or T (seed9) matrix."""
+        if self.base == "affine9":
+            u = np.eye(3)
+            u[0, 1], u[0, 2], u[1, 2] = theta[6], theta[7], theta[8]
+            return u
+        if self.base == "seed9":
+            psi, th, phi = theta[6], theta[7], theta[8]
+            return np.array([[1.0, psi, -th], [-psi, 1.0, phi], [th, -phi, 1.0]])
+        return np.eye(3)
+
+    def linear(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Linear part at the reference conditions: ``(matrix (3,3), offset (3,) raw unit)``.
+
+        ``a_cal_g = matrix @ (raw - offset)``. Nonlinearity is not part of it.
+        """
+        theta = np.asarray(theta, dtype=float)
+        s = theta[3:6]
+        if self.base == "seed9":
+            return self.upper(theta) @ np.diag(s), -theta[0:3].copy()
+        return np.diag(s) @ self.upper(theta), theta[0:3].copy()
+
+    def from_linear(self, matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
+        """Parameters whose linear part reproduces the norms of ``matrix @ (raw - offset)``.
+
+        ``matrix`` is reduced to its identifiable upper-triangular factor (QR with a
+        positive diagonal); the rotation it may contain is dropped (norms cannot see it).
+        Effect parameters are set to zero.
+        """
+        matrix = np.asarray(matrix, dtype=float)
+        offset = np.asarray(offset, dtype=float)
+        if matrix.shape != (3, 3) or offset.shape != (3,):
+            raise InputError("from_linear: matrix must be (3, 3) and offset (3,)")
+        _, r = np.linalg.qr(matrix)
+        r = np.sign(np.diag(r))[:, None] * r
+        theta = self.nominal()
+        s = np.diag(r).copy()
+        if self.base == "seed9":
+            theta[0:3] = -offset
+            theta[3:6] = s  # T = I: the angles stay at 0 (unobservable)
+            return theta
+        theta[0:3] = offset
+        theta[3:6] = s
+        if self.base == "affine9":
+            u = r / s[:, None]
+            theta[6], theta[7], theta[8] = u[0, 1], u[0, 2], u[1, 2]
+        return theta
+
+    # ------------------------------------------------------------------ forward map
+    def _covariates(self, n: int, temp_c, t_s) -> tuple[np.ndarray, np.ndarray]:
+        dtemp = np.zeros(n)
+        dtime = np.zeros(n)
+        needs_temp = "temperature_bias" in self.effects or "temperature_scale" in self.effects
+        if needs_temp:
+            if temp_c is None:
+                raise InputError(f"model {self.name} needs temp_c (degC) for every row")
+            dtemp = np.asarray(temp_c, dtype=float).reshape(n) - self.temp_ref_c
+            if not np.all(np.isfinite(dtemp)):
+                raise InputError(f"model {self.name}: temp_c has NaN/inf values")
+        if "time_drift_bias" in self.effects:
+            if t_s is None:
+                raise InputError(f"model {self.name} needs t_s (s) for every row")
+            dtime = (np.asarray(t_s, dtype=float).reshape(n) - self.t_ref_s) / SECONDS_PER_DAY
+        return dtemp, dtime
+
+    def _forward(self, theta, raw, temp_c, t_s):
+        theta = np.asarray(theta, dtype=float)
+        raw = np.asarray(raw, dtype=float)
+        n = raw.shape[0]
+        dtemp, dtime = self._covariates(n, temp_c, t_s)
+        b = np.broadcast_to(theta[0:3], (n, 3))
+        if "temperature_bias" in self.effects:
+            b = b + dtemp[:, None] * theta[self.index("temperature_bias")]
+        if "time_drift_bias" in self.effects:
+            b = b + dtime[:, None] * theta[self.index("time_drift_bias")]
+        s_eff = np.broadcast_to(theta[3:6], (n, 3))
+        if "temperature_scale" in self.effects:
+            s_eff = s_eff * (1.0 + dtemp[:, None] * theta[self.index("temperature_scale")])
+        u = self.upper(theta)
+        if self.base == "seed9":
+            y = raw + b
+            z = s_eff * y
+            lin = z @ u.T
+        else:
+            y = raw - b
+            z = y @ u.T  # z = U y
+            lin = s_eff * z
+        if "scale_nonlinearity" in self.effects:
+            q = theta[self.index("scale_nonlinearity")]
+            a = lin - q * lin**2
+        else:
+            a = lin
+        return a, (y, z, lin, s_eff, u, dtemp, dtime)
+
+    def apply(self, theta: np.ndarray, raw: np.ndarray, temp_c=None, t_s=None) -> np.ndarray:
+        """Calibrated specific force.
+
+        Parameters
+        ----------
+        theta : ndarray, shape (p,)
+        raw : ndarray, shape (n, 3), recording unit
+        temp_c : ndarray, shape (n,), degC, needed by temperature effects
+        t_s : ndarray, shape (n,), s, needed by the drift effect
+
+        Returns
+        -------
+        ndarray, shape (n, 3), g
+        """
+        raw = np.asarray(raw, dtype=float)
+        if raw.ndim != 2 or raw.shape[1] != 3:
+            raise InputError(f"raw: expected shape (n, 3), got {raw.shape}")
+        return self._forward(theta, raw, temp_c, t_s)[0]
+
+    def residuals(self, theta, raw, temp_c=None, t_s=None) -> np.ndarray:
+        """Norm residuals ``||a|| - 1`` (g), shape (n,)."""
+        a = self.apply(theta, raw, temp_c, t_s)
+        return np.sqrt(np.einsum("ij,ij->i", a, a)) - 1.0
+
+    def residual_jac(self, theta, raw, temp_c=None, t_s=None) -> tuple[np.ndarray, np.ndarray]:
+        """Norm residuals (n,) in g and their analytic Jacobian (n, p)."""
+        theta = np.asarray(theta, dtype=float)
+        raw = np.asarray(raw, dtype=float)
+        a, (y, z, lin, s_eff, u, dtemp, dtime) = self._forward(theta, raw, temp_c, t_s)
+        norm = np.sqrt(np.einsum("ij,ij->i", a, a))
+        nhat = a / norm[:, None]
+        r = norm - 1.0
+        n = raw.shape[0]
+        jac = np.empty((n, self.n_params))
+        if "scale_nonlinearity" in self.effects:
+            sl = self.index("scale_nonlinearity")
+            q = theta[sl]
+            w = nhat * (1.0 - 2.0 * q * lin)  # dr/d(lin)
+            jac[:, sl] = -nhat * lin**2
+        else:
+            w = nhat
+        if self.base == "seed9":
+            # lin = T z, z = s_eff * y, y = raw + b
+            tw = w @ u  # (T^T w) as rows
+            ds = tw * y
+            jac[:, 0:3] = tw * s_eff
+            jac[:, 6] = w[:, 0] * z[:, 1] - w[:, 1] * z[:, 0]  # psi
+            jac[:, 7] = -w[:, 0] * z[:, 2] + w[:, 2] * z[:, 0]  # theta
+            jac[:, 8] = w[:, 1] * z[:, 2] - w[:, 2] * z[:, 1]  # phi
+            jac[:, 3:6] = ds
+            return r, jac
+        # lin = s_eff * z, z = U y, y = raw - b_eff
+        ws = w * s_eff
+        v = ws @ u  # dr/dy, rows
+        jac[:, 0:3] = -v
+        scale_factor = np.ones((n, 3))
+        if "temperature_scale" in self.effects:
+            ts = theta[self.index("temperature_scale")]
+            scale_factor = 1.0 + dtemp[:, None] * ts
+            jac[:, self.index("temperature_scale")] = w * z * theta[3:6] * dtemp[:, None]
+        jac[:, 3:6] = w * z * scale_factor
+        if self.base == "affine9":
+            jac[:, 6] = ws[:, 0] * y[:, 1]
+            jac[:, 7] = ws[:, 0] * y[:, 2]
+            jac[:, 8] = ws[:, 1] * y[:, 2]
+        if "temperature_bias" in self.effects:
+            jac[:, self.index("temperature_bias")] = -v * dtemp[:, None]
+        if "time_drift_bias" in self.effects:
+            jac[:, self.index("time_drift_bias")] = -v * dtime[:, None]
+        return r, jac
+
+
+def available_models() -> list[str]:
+    """Names of the base models and effects (combine as ``base+effect+...``)."""
+    return list(BASE_PARAMS) + [f"affine9+{e}" for e in EFFECT_PARAMS]
+
+
+@dataclass(frozen=True)
+class Normalizer:
+    """Affine change of unit ``u = (raw - center) / scale`` applied before fitting.
+
+    Keeps every parameter O(1) whatever the recording's unit (g, m/s², counts), so
+    that one prior and one set of tolerances serve all. ``scale`` is in raw units per
+    g (1 for g, 9.80665 for m/s², ~counts per g for counts); ``center`` in raw units.
+    """
+
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scale: float = 1.0
+
+    def to_u(self, raw: np.ndarray) -> np.ndarray:
+        """Raw (n,3), raw unit -> normalised (n,3), ~g."""
+        return (np.asarray(raw, dtype=float) - np.asarray(self.center)) / self.scale
+
+    def param_scale(self, model: ErrorModel) -> np.ndarray:
+        """Per-parameter factor d(theta_raw)/d(theta_u), shape (p,)."""
+        f = np.ones(model.n_params)
+        f[0:3] = self.scale
+        f[3:6] = 1.0 / self.scale
+        for eff in ("temperature_bias", "time_drift_bias"):
+            if eff in model.effects:
+                f[model.index(eff)] = self.scale
+        return f
+
+    def theta_to_raw(self, model: ErrorModel, theta_u: np.ndarray) -> np.ndarray:
+        """Parameters fitted on normalised data -> parameters in the raw unit."""
+        out = np.asarray(theta_u, dtype=float) * self.param_scale(model)
+        c = np.asarray(self.center)
+        out[0:3] += -c if model.base == "seed9" else c
+        return out
+
+    def theta_to_u(self, model: ErrorModel, theta_raw: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`theta_to_raw`."""
+        t = np.asarray(theta_raw, dtype=float).copy()
+        c = np.asarray(self.center)
+        t[0:3] -= -c if model.base == "seed9" else c
+        return t / self.param_scale(model)
+
+    def cov_to_raw(self, model: ErrorModel, cov_u: np.ndarray) -> np.ndarray:
+        """Covariance (p,p) of normalised parameters -> raw-unit parameters."""
+        f = self.param_scale(model)
+        return cov_u * f[:, None] * f[None, :]

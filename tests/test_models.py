@@ -1,0 +1,93 @@
+import numpy as np
+import pytest
+
+from selfcal.errors import InputError
+from selfcal.models import EFFECT_PARAMS, ErrorModel, Normalizer
+
+ALL = ["scale6", "affine9", "seed9", "affine9+" + "+".join(EFFECT_PARAMS)] + [f"affine9+{e}" for e in EFFECT_PARAMS]
+
+
+@pytest.mark.parametrize("name", ALL)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_jacobian_matches_finite_differences(name, seed):
+    rng = np.random.default_rng(seed)
+    m = ErrorModel(name)
+    theta = m.nominal() + rng.normal(0, 0.05, m.n_params)
+    raw = rng.normal(0, 1, (25, 3))
+    temp = rng.uniform(10, 40, 25)
+    t = rng.uniform(0, 30 * 86400, 25)
+    r, jac = m.residual_jac(theta, raw, temp, t)
+    assert np.allclose(r, m.residuals(theta, raw, temp, t))
+    num = np.empty_like(jac)
+    h = 1e-6
+    for j in range(m.n_params):
+        e = np.zeros(m.n_params)
+        e[j] = h
+        num[:, j] = (m.residuals(theta + e, raw, temp, t) - m.residuals(theta - e, raw, temp, t)) / (2 * h)
+    assert np.max(np.abs(jac - num)) < 1e-7
+
+
+@pytest.mark.parametrize("name", ["scale6", "affine9"])
+def test_vector_named_roundtrip_and_linear_part(name):
+    rng = np.random.default_rng(3)
+    m = ErrorModel(name)
+    theta = m.nominal() + rng.normal(0, 0.02, m.n_params)
+    assert np.array_equal(m.from_dict(m.to_dict(theta)), theta)
+    matrix, offset = m.linear(theta)
+    raw = rng.normal(size=(10, 3))
+    assert np.allclose(m.apply(theta, raw), (raw - offset) @ matrix.T)
+
+
+def test_from_linear_drops_rotation_only():
+    rng = np.random.default_rng(4)
+    m = ErrorModel("affine9")
+    theta = m.nominal() + rng.normal(0, 0.02, 9)
+    matrix, offset = m.linear(theta)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    back = m.from_linear(q @ matrix, offset)
+    assert np.allclose(back, theta, atol=1e-12)
+    raw = rng.normal(size=(50, 3))
+    assert np.allclose(np.linalg.norm(m.apply(back, raw), axis=1), np.linalg.norm((raw - offset) @ (q @ matrix).T, axis=1))
+
+
+def test_seed9_rotation_angles_change_norm_only_at_second_order():
+    """The seed's skew T is a first-order rotation: norms move by O(angle^2), so the
+    three angles have (numerically) zero Jacobian at T = I: norms cannot determine them."""
+    rng = np.random.default_rng(5)
+    m = ErrorModel("seed9")
+    theta = m.nominal()
+    theta[0:3] = rng.normal(0, 0.03, 3)
+    theta[3:6] = 1 + rng.normal(0, 0.02, 3)
+    raw = rng.normal(size=(40, 3))
+    _, jac = m.residual_jac(theta, raw)
+    assert np.max(np.abs(jac[:, 6:9])) < 1e-12
+    for eps in (1e-2, 1e-3):
+        t2 = theta.copy()
+        t2[6:9] = eps
+        dr = np.abs(m.residuals(t2, raw) - m.residuals(theta, raw)).max()
+        assert dr < 5 * eps**2  # second order
+
+
+def test_unknown_model_and_bad_shapes_are_named():
+    with pytest.raises(InputError, match="unknown base model"):
+        ErrorModel("affine12")
+    with pytest.raises(InputError, match="unknown effect"):
+        ErrorModel("affine9+humidity")
+    m = ErrorModel("affine9")
+    with pytest.raises(InputError, match="raw"):
+        m.apply(m.nominal(), np.zeros((4, 2)))
+    with pytest.raises(InputError, match="temp_c"):
+        ErrorModel("affine9+temperature_bias").apply(np.r_[m.nominal(), 0, 0, 0], np.zeros((4, 3)))
+
+
+def test_normalizer_roundtrip():
+    m = ErrorModel("affine9+temperature_bias+time_drift_bias")
+    nz = Normalizer((32768.0, 32000.0, 33000.0), 4050.0)
+    rng = np.random.default_rng(6)
+    th = m.nominal() + rng.normal(0, 0.01, m.n_params)
+    raw_th = nz.theta_to_raw(m, th)
+    assert np.allclose(nz.theta_to_u(m, raw_th), th)
+    raw = rng.normal(0, 4000, (20, 3)) + 32768
+    a_u = m.apply(th, nz.to_u(raw), np.full(20, 30.0), np.full(20, 1e5))
+    a_raw = m.apply(raw_th, raw, np.full(20, 30.0), np.full(20, 1e5))
+    assert np.allclose(a_u, a_raw)
