@@ -60,3 +60,34 @@ def poses_from_truth(rng, model: ErrorModel, theta, directions, sample_sd_g=2e-3
     raw = raw + rng.normal(0, sample_sd_g / np.sqrt(count), raw.shape)
     n = len(directions)
     return PoseData(raw, np.full((n, 3), sample_sd_g), np.full(n, count), t_s, temp_c)
+
+
+def sample_stream(rng, model: ErrorModel, theta, directions, still_s=4.0, move_s=1.5, rate_hz=20.0,
+                  sample_sd_g=2e-3, t0_s=0.0, temp_c=None):
+    """A raw 20 Hz stream: a still of ``still_s`` in each direction, separated by motion.
+
+    Returns ``t_s (n,)``, ``raw (n, 3)`` (model's raw unit), ``temp (n,)`` or None.
+    """
+    matrix, offset = model.linear(theta)
+    inv = np.linalg.inv(matrix)
+    n_still = int(round(still_s * rate_hz))
+    n_move = int(round(move_s * rate_hz))
+    parts = []
+    for d in directions:
+        still = np.tile(d, (n_still, 1))
+        move = d + rng.normal(0, 0.4, (n_move, 3))  # vigorous motion: several-g peaks
+        parts += [still, move]
+    a = np.vstack(parts)
+    raw = a @ inv.T + offset + rng.normal(0, sample_sd_g, a.shape)
+    t = t0_s + np.arange(len(a)) / rate_hz
+    temp = None if temp_c is None else np.full(len(a), float(temp_c))
+    return t, raw, temp
+
+
+def sphere_rms_mg(model: ErrorModel, theta_est, theta_true, n=2000, seed=0) -> float:
+    """RMS of ||a_cal|| - 1 (mg) over directions spread on the whole sphere (truth known)."""
+    d = spread_directions(np.random.default_rng(seed), n)
+    matrix, offset = model.linear(theta_true)
+    raw = d @ np.linalg.inv(matrix).T + offset
+    a = model.apply(theta_est, raw)
+    return float(np.sqrt(np.mean((np.linalg.norm(a, axis=1) - 1) ** 2)) * 1e3)
