@@ -202,11 +202,8 @@ class OnlineCalibrator:
         t_s = np.atleast_1d(np.asarray(t_s, dtype=float))
         if mean_g.shape[0] == 0:
             return []
-        held_every = self.guard_cfg.heldout_every
-        ids_before = self.buffer.next_id
-        self.buffer.add(mean_g, sd_g, n, t_s, temp_c)
-        new_ids = np.arange(ids_before, self.buffer.next_id)
-        self.new_since_refit += int(np.sum(new_ids % held_every != 0))
+        stats = self.buffer.add(mean_g, sd_g, n, t_s, temp_c)
+        self.new_since_refit += stats["added"] + stats["replaced"]
         self.t_last_s = max(self.t_last_s or -np.inf, float(np.max(t_s)))
         if self._due():
             return [self.refit()]
@@ -216,9 +213,8 @@ class OnlineCalibrator:
         if self.new_since_refit <= 0:
             return False
         if self.current is None:
-            n_train = int(np.sum(~self.buffer.heldout(self.guard_cfg.heldout_every)))
-            return n_train >= self.sched_cfg.min_poses_first and self.new_since_refit >= min(
-                self.sched_cfg.refit_every_poses, self.sched_cfg.min_poses_first)
+            n_train = int(np.sum(~self._heldout()))
+            return n_train >= self.sched_cfg.min_poses_first
         if self.new_since_refit >= self.sched_cfg.refit_every_poses:
             return True
         if self.last_refit_t_s is not None and self.t_last_s is not None:
@@ -244,7 +240,7 @@ class OnlineCalibrator:
         """Refit now (the scheduler calls this); returns the outcome dict."""
         t_now = float(self.t_last_s if self.t_last_s is not None else 0.0)
         self.n_refits += 1
-        held = self.buffer.heldout(self.guard_cfg.heldout_every)
+        held = self._heldout()
         train = ~held
         mode = "full"
         fit: FitResult | None = None
@@ -280,6 +276,12 @@ class OnlineCalibrator:
         if not decision.publish:
             return self._refuse(t_now, decision.reason, decision.message, mode, fit, decision)
         return self._publish(t_now, fit, used, mode, decision)
+
+    def _heldout(self) -> np.ndarray:
+        """Held-out mask: every k-th pose id, not yet absorbed, once the buffer is large enough."""
+        if len(self.buffer) < self.guard_cfg.heldout_min_poses:
+            return np.zeros(len(self.buffer), dtype=bool)
+        return self.buffer.heldout(self.guard_cfg.heldout_every) & ~self.buffer.absorbed
 
     def _guard(self, fit: FitResult, held: np.ndarray) -> GuardDecision:
         g = self.guard_cfg

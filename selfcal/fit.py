@@ -90,6 +90,9 @@ class GuardConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     heldout_every: int = Field(5, ge=2, description="hold out every k-th pose (by pose id)")
+    heldout_min_poses: int = Field(
+        20, ge=2, description="hold poses out only once the buffer has this many (small sets need them all)"
+    )
     min_heldout: int = Field(3, ge=1, description="fewer held-out poses: compare on all poses")
     tolerance_rel: float = Field(0.05, ge=0, description="allowed relative held-out RMS increase")
     tolerance_mg: float = Field(0.05, ge=0, description="allowed absolute held-out RMS increase, mg")
@@ -100,10 +103,10 @@ class GuardConfig(BaseModel):
     max_bias_g: float = Field(0.5, gt=0, description="plausible |offset|, g")
     max_scale_dev: float = Field(0.25, gt=0, description="plausible |scale - 1| (normalised)")
     max_nonorth_rad: float = Field(0.1, gt=0, description="plausible |nxy|, |nxz|, |nyz|, rad")
-    max_temp_bias_g_per_c: float = Field(0.01, gt=0)
-    max_temp_scale_per_c: float = Field(0.005, gt=0)
-    max_drift_g_per_day: float = Field(0.05, gt=0)
-    max_nonlin_per_g: float = Field(0.1, gt=0)
+    max_temp_bias_g_per_c: float = Field(0.01, gt=0, description="plausible |temperature bias|, g/degC")
+    max_temp_scale_per_c: float = Field(0.005, gt=0, description="plausible |temperature scale|, 1/degC")
+    max_drift_g_per_day: float = Field(0.05, gt=0, description="plausible |bias drift|, g/day")
+    max_nonlin_per_g: float = Field(0.1, gt=0, description="plausible |scale nonlinearity q|, 1/g")
     max_residual_rms_mg: float = Field(30.0, gt=0, description="fit residual RMS above this: implausible")
 
     @classmethod

@@ -7,7 +7,10 @@ Policy (documented in the README):
   between their gravity directions; the temperature term only when both have one, so
   that the same orientation at another temperature is kept: it is what reveals a
   temperature effect). A new pose with ``gamma < 1`` to a stored one *replaces* it:
-  the newest observation of a direction wins, which tracks a drifting sensor.
+  the newest observation of a direction wins, which tracks a drifting sensor. If the
+  stored pose is recent (``pool_within_s``) and not yet absorbed into the published
+  model, the two are *pooled* instead (n-weighted mean, pooled sd), so a long still
+  split into several windows counts as one pose with all its samples.
 * **Bound** — when the buffer holds ``max_poses``, the most redundant pose goes: of the
   closest pair (smallest gamma), the older one. Isolated poses (the rare shoe-on-its-
   side) are never the ones evicted while redundant ones remain: coverage is preserved.
@@ -38,6 +41,9 @@ class PoseConfig(BaseModel):
     max_poses: int = Field(240, ge=8, description="buffer size bound")
     merge_angle_deg: float = Field(3.0, gt=0, description="poses closer than this (and merge_temp_c) are one pose, deg")
     merge_temp_c: float = Field(2.0, gt=0, description="temperature scale of the diversity distance, degC")
+    pool_within_s: float = Field(
+        600.0, ge=0, description="a repeat of a pose not yet absorbed and this recent is pooled with it (n-weighted), s"
+    )
     axis_tol_g: float = Field(0.12, gt=0, description="axis-aligned (O_cor) tolerance, g")
     cube_g: float = Field(0.3, gt=0, description="GGIR-style coverage: both sides of +-cube_g on every axis")
 
@@ -139,6 +145,10 @@ class PoseBuffer:
             gamma = self._gamma(mean_g[i], temp[i])
             if gamma.size and gamma.min() < 1.0:
                 j = int(np.argmin(gamma))
+                if not self.absorbed[j] and abs(t_s[i] - self.t_s[j]) <= self.config.pool_within_s:
+                    self._pool(j, mean_g[i], sd_g[i], count[i], t_s[i], temp[i])
+                    stats["replaced"] += 1
+                    continue
                 for name, value in zip(_FIELDS, row):
                     getattr(self, name)[j] = value
                 self.n_replaced += 1
@@ -152,6 +162,20 @@ class PoseBuffer:
                 self._evict_one()
                 stats["evicted"] += 1
         return stats
+
+    def _pool(self, j: int, mean, sd, count, t_s, temp) -> None:
+        """Pool a repeat of pose ``j`` into it (n-weighted; sd includes the spread of the means)."""
+        n1, n2 = self.count[j], count
+        n = n1 + n2
+        m = (n1 * self.mean[j] + n2 * mean) / n
+        var = (n1 * (self.sd[j] ** 2 + (self.mean[j] - m) ** 2) + n2 * (sd**2 + (mean - m) ** 2)) / n
+        self.mean[j] = m
+        self.sd[j] = np.sqrt(var)
+        self.count[j] = n
+        self.t_s[j] = (n1 * self.t_s[j] + n2 * t_s) / n
+        if np.isfinite(temp) and np.isfinite(self.temp_c[j]):
+            self.temp_c[j] = (n1 * self.temp_c[j] + n2 * temp) / n
+        self.n_replaced += 1
 
     def _evict_one(self) -> None:
         g = self._pairwise_gamma()
