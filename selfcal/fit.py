@@ -23,7 +23,8 @@ Levenberg-Marquardt (``lm_solve``)
 Marquardt-scaled damping ``(A + lambda diag(A)) delta = -g``, step acceptance by the
 gain ratio ``rho = actual / predicted`` reduction (Nielsen's lambda update; a step that
 raises the cost is rejected and lambda multiplied by a growing factor). It stops when
-(1) the relative predicted decrease falls below ``ftol``, (2) the step is below
+(1) the predicted decrease falls below ``max(ftol * cost, ftol_chi2)`` (a decrease of
+1e-6 in chi² moves the parameters by ~1e-3 of their sd: nothing the data can tell), (2) the step is below
 ``xtol * (||theta|| + xtol)``, (3) the scaled gradient ``max |g_j| / sqrt(A_jj)`` is
 below ``gtol``, or (4) after ``max_iter`` iterations (``status = 0``, not converged).
 """
@@ -52,6 +53,10 @@ class FitConfig(BaseModel):
     ftol: float = Field(1e-12, gt=0, description="stop: relative predicted cost decrease")
     xtol: float = Field(1e-10, gt=0, description="stop: relative step size")
     gtol: float = Field(1e-10, gt=0, description="stop: scaled gradient")
+    ftol_chi2: float = Field(
+        1e-6, ge=0,
+        description="stop: predicted cost decrease below this, in chi2 units (a change the data cannot tell)",
+    )
     sigma_floor_g: float = Field(
         3e-4, ge=0, description="floor added (in quadrature) to every pose's residual sd, g"
     )
@@ -180,10 +185,13 @@ class Prior:
 
     mean: np.ndarray
     cov: np.ndarray
+    _precision: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def precision(self) -> np.ndarray:
-        """Inverse covariance (p, p)."""
-        return np.linalg.inv(self.cov)
+        """Inverse covariance (p, p), computed once."""
+        if self._precision is None:
+            self._precision = np.linalg.inv(self.cov)
+        return self._precision
 
     def to_json(self) -> dict:
         return {"mean": self.mean.tolist(), "cov": self.cov.tolist()}
@@ -259,7 +267,7 @@ class LMResult:
 
 TERMINATION_MESSAGES = {
     0: "the maximum number of iterations was reached",
-    1: "the relative predicted cost decrease is below ftol",
+    1: "the predicted cost decrease is below ftol (relative) or ftol_chi2 (absolute)",
     2: "the relative step is below xtol",
     3: "the scaled gradient is below gtol",
     -1: "the cost is not finite at the initial value",
@@ -336,7 +344,7 @@ def lm_solve(
         rho = actual / pred if pred > 0 else -1.0
         if np.isfinite(cost_n) and rho > 0:
             small_step = np.linalg.norm(step) <= cfg.xtol * (np.linalg.norm(theta) + cfg.xtol)
-            small_dec = pred <= cfg.ftol * max(cost, 1e-300)
+            small_dec = pred <= max(cfg.ftol * cost, cfg.ftol_chi2)
             theta, r, j, rw, jw, d, cost = theta_new, r_n, j_n, rw_n, jw_n, d_n, cost_n
             a = jw.T @ jw + lam_p
             g = jw.T @ rw + lam_p @ d
@@ -350,7 +358,7 @@ def lm_solve(
                 status = 2
                 break
         else:
-            if pred <= cfg.ftol * max(cost, 1e-300):
+            if pred <= max(cfg.ftol * cost, cfg.ftol_chi2):
                 status = 1
                 break
             lam *= nu
@@ -530,7 +538,7 @@ def _direction_dicts(model: ErrorModel, vecs: np.ndarray) -> list[dict[str, floa
 
 
 def observability(
-    model: ErrorModel, jac_w: np.ndarray, prior: Prior, ratio: float
+    model: ErrorModel, jac_w: np.ndarray, prior: Prior, ratio: float, posterior_cov: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, int, list[dict[str, float]], np.ndarray]:
     """Which parameter directions the poses determine.
 
@@ -539,6 +547,7 @@ def observability(
     jac_w : ndarray, shape (n, p) — Jacobian of the whitened residuals ``r/sigma``
     prior : Prior
     ratio : float — determined when the posterior sd is below ``ratio`` x prior sd
+    posterior_cov : (p, p), optional — ``inv(J^T J + prior precision)`` if already known
 
     Returns
     -------
@@ -555,7 +564,7 @@ def observability(
     evals, evecs = evals[::-1], evecs[:, ::-1]
     threshold = 1.0 / ratio**2 - 1.0
     det_dir = evals >= threshold
-    post = np.linalg.inv(fisher + prior.precision())
+    post = np.linalg.inv(fisher + prior.precision()) if posterior_cov is None else posterior_cov
     shrink = np.sqrt(np.diag(post) / np.diag(prior.cov))
     # undetermined directions, mapped back to parameter space (unit vectors)
     und = low @ evecs[:, ~det_dir]
@@ -672,47 +681,50 @@ def fit_poses(
         raise InputError(f"model {model.name} needs temperatures (temp_c) for every pose")
     t_s = poses.t_s
 
+    lam_p = prior.precision()
+
     def cost_of(theta):
         r = model.residuals(theta, raw_u, temp, t_s) / sigma
         d = theta - prior.mean
-        c = 0.5 * (r @ r + d @ prior.precision() @ d)
+        c = 0.5 * (r @ r + d @ lam_p @ d)
         return c if np.isfinite(c) else np.inf
 
-    candidates: list[tuple[str, np.ndarray]] = []
-    if theta0_u is not None:
-        candidates.append(("given", np.asarray(theta0_u, dtype=float)))
-    candidates.append(("prior", prior.mean.copy()))
-    mask = axis_aligned_mask(raw_u, cfg.axis_tol_g)
-    ls = ls_axis_aligned(model.with_effects(()), raw_u, mask)
-    if ls is not None:
-        candidates.append(("least_squares_axis_aligned", model.extend_theta(ls, model.with_effects(()))))
-    quad = quadric_fit(model.with_effects(()), raw_u)
-    if quad is not None:
-        candidates.append(("quadric", model.extend_theta(quad, model.with_effects(()))))
-    costs = [cost_of(th) for th in candidates_thetas(candidates)]
-    order = np.argsort(costs)
+    def good(res: LMResult) -> bool:
+        return res.success and 2 * res.cost / max(len(raw_u), 1) < cfg.chi2_restart
+
     best: LMResult | None = None
     best_name = ""
     tried = 0
-    for idx in order:
-        name, th = candidates[idx]
-        if not np.isfinite(costs[idx]):
-            continue
-        res = lm_solve(model, th, raw_u, sigma, prior, temp, t_s, cfg)
-        tried += 1
-        if best is None or res.cost < best.cost:
-            best, best_name = res, name
-        chi2 = 2 * best.cost / max(len(raw_u), 1)
-        if best.success and chi2 < cfg.chi2_restart:
-            break
-    if best is None:
+    if theta0_u is not None:  # warm start: the usual refit; other starts only if it fails
+        best = lm_solve(model, np.asarray(theta0_u, dtype=float), raw_u, sigma, prior, temp, t_s, cfg)
+        best_name, tried = "given", 1
+    if best is None or not good(best):
+        base = model.with_effects(())
+        candidates: list[tuple[str, np.ndarray]] = [("prior", prior.mean.copy())]
+        ls = ls_axis_aligned(base, raw_u, axis_aligned_mask(raw_u, cfg.axis_tol_g))
+        if ls is not None:
+            candidates.append(("least_squares_axis_aligned", model.extend_theta(ls, base)))
+        quad = quadric_fit(base, raw_u)
+        if quad is not None:
+            candidates.append(("quadric", model.extend_theta(quad, base)))
+        costs = [cost_of(th) for _, th in candidates]
+        for idx in np.argsort(costs):
+            name, th = candidates[idx]
+            if not np.isfinite(costs[idx]):
+                continue
+            res = lm_solve(model, th, raw_u, sigma, prior, temp, t_s, cfg)
+            tried += 1
+            if best is None or not np.isfinite(best.cost) or res.cost < best.cost:
+                best, best_name = res, name
+            if good(best):
+                break
+    if best is None or not np.isfinite(best.cost):
         raise InputError("fit: every initial value gives a non-finite cost (check the data)")
 
     # uncertainty
     jw = best.jac / sigma[:, None]
     rw = best.fun / sigma
     fisher = jw.T @ jw
-    lam_p = prior.precision()
     post0 = np.linalg.inv(fisher + lam_p)
     p_eff = float(np.trace(post0 @ fisher))
     dof = max(len(raw_u) - p_eff, 1.0)
@@ -720,7 +732,8 @@ def fit_poses(
     infl = max(1.0, chi2_red)
     cov_u = np.linalg.inv(fisher / infl + lam_p)
     cov_u = 0.5 * (cov_u + cov_u.T)
-    determined, shrink, n_dir, und, _ = observability(model, jw / np.sqrt(infl), prior, cfg.determined_ratio)
+    determined, shrink, n_dir, und, _ = observability(
+        model, jw / np.sqrt(infl), prior, cfg.determined_ratio, posterior_cov=cov_u)
     crlb_u = cramer_rao_std(best.jac, sigma * np.sqrt(infl))
     params = normalizer.theta_to_raw(model, best.x)
     cov = normalizer.cov_to_raw(model, cov_u)
@@ -752,11 +765,6 @@ def fit_poses(
         fit_ms=fit_ms,
         extra={"starts_tried": tried},
     )
-
-
-def candidates_thetas(candidates: list[tuple[str, np.ndarray]]) -> list[np.ndarray]:
-    """The parameter vectors of a candidate list (helper for readability)."""
-    return [th for _, th in candidates]
 
 
 # --------------------------------------------------------------------------- guard

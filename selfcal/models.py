@@ -226,9 +226,10 @@ class ErrorModel:
         return theta
 
     # ------------------------------------------------------------------ forward map
-    def _covariates(self, n: int, temp_c, t_s) -> tuple[np.ndarray, np.ndarray]:
-        dtemp = np.zeros(n)
-        dtime = np.zeros(n)
+    def _covariates(self, n: int, temp_c, t_s) -> tuple[np.ndarray | None, np.ndarray | None]:
+        dtemp = dtime = None
+        if not self.effects:
+            return dtemp, dtime
         needs_temp = "temperature_bias" in self.effects or "temperature_scale" in self.effects
         if needs_temp:
             if temp_c is None:
@@ -247,12 +248,12 @@ class ErrorModel:
         raw = np.asarray(raw, dtype=float)
         n = raw.shape[0]
         dtemp, dtime = self._covariates(n, temp_c, t_s)
-        b = np.broadcast_to(theta[0:3], (n, 3))
+        b = theta[0:3]  # (3,) broadcasts; (n, 3) once an effect makes it per-sample
         if "temperature_bias" in self.effects:
             b = b + dtemp[:, None] * theta[self.index("temperature_bias")]
         if "time_drift_bias" in self.effects:
             b = b + dtime[:, None] * theta[self.index("time_drift_bias")]
-        s_eff = np.broadcast_to(theta[3:6], (n, 3))
+        s_eff = theta[3:6]
         if "temperature_scale" in self.effects:
             s_eff = s_eff * (1.0 + dtemp[:, None] * theta[self.index("temperature_scale")])
         u = self.upper(theta)
@@ -326,7 +327,7 @@ class ErrorModel:
         ws = w * s_eff
         v = ws @ u  # dr/dy, rows
         jac[:, 0:3] = -v
-        scale_factor = np.ones((n, 3))
+        scale_factor = 1.0
         if "temperature_scale" in self.effects:
             ts = theta[self.index("temperature_scale")]
             scale_factor = 1.0 + dtemp[:, None] * ts
