@@ -68,10 +68,12 @@ class FitConfig(BaseModel):
     prior_scale_rel: float = Field(0.05, gt=0, description="prior sd of the scales, relative")
     prior_nonorth_rad: float = Field(0.02, gt=0, description="prior sd of nxy, nxz, nyz, rad")
     prior_seed_angle_rad: float = Field(0.02, gt=0, description="prior sd of seed9 angles, rad")
-    prior_temp_bias_g_per_c: float = Field(2e-3, gt=0, description="prior sd, g/degC")
-    prior_temp_scale_per_c: float = Field(1e-3, gt=0, description="prior sd, 1/degC")
-    prior_drift_g_per_day: float = Field(5e-3, gt=0, description="prior sd, g/day")
-    prior_nonlin_per_g: float = Field(0.02, gt=0, description="prior sd of q, 1/g")
+    # effect priors: consumer-MEMS datasheets (ADXL345, LIS3DH, BMA4xx) list offset tempco
+    # ~0.5-1 mg/degC, sensitivity tempco 0.01-0.02 %/degC, nonlinearity <= 0.5 % FS
+    prior_temp_bias_g_per_c: float = Field(1e-3, gt=0, description="prior sd of the offset tempco, g/degC")
+    prior_temp_scale_per_c: float = Field(3e-4, gt=0, description="prior sd of the sensitivity tempco, 1/degC")
+    prior_drift_g_per_day: float = Field(2e-3, gt=0, description="prior sd of the offset drift, g/day")
+    prior_nonlin_per_g: float = Field(0.01, gt=0, description="prior sd of the quadratic nonlinearity q, 1/g")
     determined_ratio: float = Field(
         0.5, gt=0, lt=1,
         description="a parameter is determined when the data shrink its prior sd by this factor",

@@ -1,0 +1,465 @@
+"""Measured vs simulated: what the base model misses, its cause, and the gain of fixing it.
+
+Given still poses (a poses table, or the still windows of a samples recording):
+
+1. **Base fit.** ``affine9`` (MAP; directions the poses do not determine stay at the
+   datasheet prior and are listed).
+2. **What the simulation gets wrong.** The base model is the project's simulation of
+   this sensor. We simulate the *same* recording under it: the same poses (their
+   fitted gravity directions), times and temperatures, and each pose's noise as
+   measured (its sd and sample count). We refit and compute the residual statistics
+   many times. The measured statistics are then compared with that distribution
+   (z-scores):
+   * level (RMS);
+   * structure against temperature and against time (OLS slope and R²);
+   * structure against orientation (R² on the per-axis gravity components);
+   * whiteness (lag-1 autocorrelation in time order).
+3. **Candidate effects.** ``temperature_bias``, ``temperature_scale``, ``time_drift_bias``
+   and ``scale_nonlinearity``. Each extends the fitted model (``affine9+effect``) and the
+   simulator. A candidate is supported when all three hold:
+   * an F-test on the fit gives ``p < alpha / n_candidates`` (3 extra parameters
+     against the residual variance: the complexity penalty);
+   * the held-out RMS improves by at least ``min_gain_rel``, averaged over a blocked
+     cross-validation in time (contiguous blocks held out in turn: the standard for data
+     ordered in time, and far less variable than one chronological split) and a k-fold
+     split by pose.
+
+   With no supported candidate the answer is ``cause: null``.
+4. **Separability.** The poses may not be able to tell two candidates apart (one
+   orientation: a temperature bias and a temperature scale both move the norm by
+   ``c · dT`` along gravity). A rival that is itself significant and whose fit is worse
+   than the best by less than ``separable_dchi2`` (χ² in residual-variance units: a
+   non-nested comparison) cannot be told apart by these poses. The evidence says so,
+   reports the share of the best pattern the rival reproduces, and no cause is named.
+5. **Gain.** The extended model is refitted on all poses (its estimate has an sd). The
+   held-out RMS before → after is reported on the chronological split: fit on the first
+   part, evaluate on the rest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy import stats
+
+from selfcal.errors import InputError
+from selfcal.fit import FitConfig, GuardConfig, PoseData, datasheet_prior, fit_poses, implausible, pose_sigma
+from selfcal.models import EFFECT_PARAMS, ErrorModel, Normalizer
+
+EFFECTS = tuple(EFFECT_PARAMS)
+
+#: Physical unit and factor (from normalised parameters, g-based) for reporting estimates.
+EFFECT_UNITS = {
+    "temperature_bias": ("mg/degC", 1e3),
+    "temperature_scale": ("ppm/degC", 1e6),
+    "time_drift_bias": ("mg/day", 1e3),
+    "scale_nonlinearity": ("mg/g^2", 1e3),
+}
+
+
+class DiagnoseConfig(BaseModel):
+    """The ``[diagnose]`` section."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    alpha: float = Field(4e-3, gt=0, lt=1, description="F-test level, Bonferroni-divided over the 4 candidates (1e-3 each)")
+    min_gain_rel: float = Field(0.01, ge=0, description="held-out RMS must drop by at least this fraction")
+    time_split: float = Field(0.5, gt=0.1, lt=0.9, description="chronological split: fraction of time used to fit")
+    pose_folds: int = Field(5, ge=2, description="folds of the split by pose")
+    time_blocks: int = Field(4, ge=2, description="contiguous time blocks of the blocked cross-validation")
+    separable_dchi2: float = Field(
+        10.0, gt=0,
+        description="a significant rival whose fit is worse by less than this (chi2, in residual-variance units): not separable",
+    )
+    n_sim: int = Field(10, ge=2, description="simulated replicates of the recording under the base model")
+    min_temp_range_c: float = Field(3.0, ge=0, description="temperature candidates need this range, degC")
+    min_time_span_h: float = Field(12.0, ge=0, description="drift candidate needs this time span, h")
+    seed: int = Field(0, description="seed of the simulated replicates")
+    estimate_floor: bool = Field(
+        True, description="estimate the residual floor (beyond measured noise) from the base fit, instead of [fit] sigma_floor_g"
+    )
+
+    @classmethod
+    def from_section(cls, section: dict[str, Any] | None) -> "DiagnoseConfig":
+        """Validate the ``[diagnose]`` TOML section."""
+        return cls(**(section or {}))
+
+
+# ----------------------------------------------------------------------------- statistics
+
+
+def _ols_slope_r2(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    if x is None or np.ptp(x) == 0 or len(x) < 3:
+        return float("nan"), float("nan")
+    xc = x - x.mean()
+    yc = y - y.mean()
+    slope = float(xc @ yc / (xc @ xc))
+    ss = yc @ yc
+    r2 = float(1 - np.sum((yc - slope * xc) ** 2) / ss) if ss > 0 else 0.0
+    return slope, r2
+
+
+def residual_stats(res_g: np.ndarray, gdir: np.ndarray, t_s: np.ndarray, temp_c: np.ndarray | None) -> dict[str, float]:
+    """Residual statistics of one fit, shape-free numbers.
+
+    Parameters
+    ----------
+    res_g : (n,) norm residuals, g
+    gdir : (n, 3) unit gravity directions (calibrated)
+    t_s : (n,) s
+    temp_c : (n,) degC or None
+    """
+    order = np.argsort(t_s, kind="stable")
+    r = res_g[order] * 1e3
+    out = {"rms_mg": float(np.sqrt(np.mean(r**2)))}
+    slope, r2 = _ols_slope_r2(None if temp_c is None else temp_c[order], r)
+    out["temp_slope_mg_per_c"], out["temp_r2"] = slope, r2
+    slope, r2 = _ols_slope_r2(t_s[order] / 86400.0, r)
+    out["time_slope_mg_per_day"], out["time_r2"] = slope, r2
+    # orientation structure: residual regressed on cubic direction terms (what affine9 cannot absorb)
+    g = gdir[order]
+    design = np.column_stack([g**3, np.ones(len(g))])
+    coef, *_ = np.linalg.lstsq(design, r, rcond=None)
+    ss = np.sum((r - r.mean()) ** 2)
+    out["orientation_r2"] = float(1 - np.sum((r - design @ coef) ** 2) / ss) if ss > 0 else 0.0
+    out["lag1_autocorr"] = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if len(r) > 3 and np.std(r) > 0 else float("nan")
+    return out
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+@dataclass
+class _Data:
+    u: np.ndarray  # (n,3) normalised means
+    sd_u: np.ndarray | None
+    count: np.ndarray
+    t_s: np.ndarray
+    temp_c: np.ndarray | None
+
+    def poses(self, idx=None) -> PoseData:
+        idx = slice(None) if idx is None else idx
+        return PoseData(self.u[idx], None if self.sd_u is None else self.sd_u[idx], self.count[idx], self.t_s[idx],
+                        None if self.temp_c is None else self.temp_c[idx])
+
+
+def _fit(model: ErrorModel, data: _Data, idx=None, cfg: FitConfig | None = None, theta0=None):
+    return fit_poses(model, data.poses(idx), cfg=cfg, prior=datasheet_prior(model, cfg), theta0_u=theta0)
+
+
+def _heldout_rms(model: ErrorModel, theta_u, data: _Data, idx) -> float:
+    r = model.residuals(theta_u, data.u[idx], None if data.temp_c is None else data.temp_c[idx], data.t_s[idx])
+    return float(np.sqrt(np.mean(r**2)) * 1e3)
+
+
+def _time_split(data: _Data, frac: float) -> tuple[np.ndarray, np.ndarray]:
+    t_cut = data.t_s.min() + frac * np.ptp(data.t_s)
+    train = data.t_s <= t_cut
+    return train, ~train
+
+
+def _cv_rms(model, data: _Data, folds: np.ndarray, fit_cfg: FitConfig, theta0) -> float:
+    """Cross-validated RMS (mg): each fold label held out in turn, fit on the rest."""
+    sq = []
+    for k in np.unique(folds):
+        test = folds == k
+        try:
+            f = _fit(model, data, ~test, fit_cfg, theta0)
+        except InputError:
+            continue
+        r = model.residuals(f.theta_u, data.u[test], None if data.temp_c is None else data.temp_c[test], data.t_s[test])
+        sq.append(r**2)
+    return float(np.sqrt(np.mean(np.concatenate(sq))) * 1e3) if sq else float("nan")
+
+
+def _split_scores(model: ErrorModel, data: _Data, cfg: DiagnoseConfig, fit_cfg: FitConfig, theta0=None) -> dict[str, float]:
+    """Held-out RMS (mg) by blocked time CV (contiguous blocks), by pose CV (k folds) and on
+    the plain chronological split (first part fits, the rest is held out)."""
+    train, test = _time_split(data, cfg.time_split)
+    out = {}
+    try:
+        f = _fit(model, data, train, fit_cfg, theta0)
+        out["chrono"] = _heldout_rms(model, f.theta_u, data, test)
+    except InputError:
+        out["chrono"] = float("nan")
+    span = max(np.ptp(data.t_s), 1e-9)
+    blocks = np.minimum(((data.t_s - data.t_s.min()) / span * cfg.time_blocks).astype(int), cfg.time_blocks - 1)
+    out["time"] = _cv_rms(model, data, blocks, fit_cfg, theta0)
+    out["pose"] = _cv_rms(model, data, np.arange(len(data.u)) % cfg.pose_folds, fit_cfg, theta0)
+    return out
+
+
+def _whitened_projection(fit, data: _Data):
+    """Base-model Jacobian columns (whitened) and the projector onto their complement."""
+    sigma = fit.sigma_g
+    jb = fit.model.residual_jac(fit.theta_u, data.u, data.temp_c, data.t_s)[1] / sigma[:, None]
+    q, _ = np.linalg.qr(jb)
+    return sigma, q
+
+
+def _effect_columns(effect: str, base_fit, data: _Data, sigma, q) -> np.ndarray:
+    """Whitened Jacobian columns of an effect at zero effect, with the base part projected out."""
+    ext = base_fit.model.with_effects((effect,))
+    theta = ext.extend_theta(base_fit.theta_u, base_fit.model)
+    j = ext.residual_jac(theta, data.u, data.temp_c, data.t_s)[1][:, ext.index(effect)] / sigma[:, None]
+    return j - q @ (q.T @ j)
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def diagnose_poses(
+    mean: np.ndarray,
+    sd: np.ndarray | None,
+    count: np.ndarray,
+    t_s: np.ndarray,
+    temp_c: np.ndarray | None,
+    normalizer: Normalizer | None = None,
+    config: dict | None = None,
+    base_model: str = "affine9",
+) -> dict:
+    """Diagnose a table of still poses; returns the design-contract JSON (dict).
+
+    Parameters
+    ----------
+    mean, sd : ndarray, shape (n, 3), raw unit
+    count : ndarray, shape (n,) — samples per pose
+    t_s : ndarray, shape (n,), s
+    temp_c : ndarray, shape (n,), degC, or None
+    normalizer : Normalizer — raw -> ~g (identity for data in g)
+    config : loaded configuration (sections ``diagnose`` and ``fit``)
+    """
+    from selfcal.config import section
+
+    cfg = DiagnoseConfig.from_section(section(config, "diagnose"))
+    fit_cfg = FitConfig.from_section(section(config, "fit"))
+    normalizer = normalizer or Normalizer()
+    mean = np.asarray(mean, dtype=float)
+    if len(mean) < 12:
+        raise InputError(f"diagnose: {len(mean)} poses; at least 12 are needed")
+    t_s = np.asarray(t_s, dtype=float)
+    temp = None if temp_c is None else np.asarray(temp_c, dtype=float)
+    if temp is not None and not np.all(np.isfinite(temp)):
+        temp = None if np.mean(np.isfinite(temp)) < 0.5 else np.where(np.isfinite(temp), temp, np.nanmedian(temp))
+    data = _Data(normalizer.to_u(mean), None if sd is None else np.asarray(sd, float) / normalizer.scale,
+                 np.asarray(count, dtype=float), t_s, temp)
+    temp_ref = float(np.median(temp)) if temp is not None else 25.0
+    t_ref = float(t_s.min())
+    base = ErrorModel(base_model, temp_ref, t_ref)
+    base_fit = _fit(base, data, None, fit_cfg)
+    if cfg.estimate_floor:
+        # the floor is what the base model leaves beyond the measured noise (moment match)
+        noise = pose_sigma(data.u, data.sd_u, data.count, fit_cfg.model_copy(update={"sigma_floor_g": 0.0}))
+        floor = float(np.sqrt(max(np.mean(base_fit.residuals_g**2 - noise**2), 0.0)))
+        fit_cfg = fit_cfg.model_copy(update={"sigma_floor_g": max(floor, 1e-5)})
+        base_fit = _fit(base, data, None, fit_cfg, base_fit.theta_u)
+    a = base.apply(base_fit.theta_u, data.u)
+    gdir = a / np.linalg.norm(a, axis=1, keepdims=True)
+
+    # ---------------------------------------------------------------- discrepancy vs simulation
+    measured = residual_stats(base_fit.residuals_g, gdir, t_s, temp)
+    rng = np.random.default_rng(cfg.seed)
+    matrix, offset = base.linear(base_fit.theta_u)
+    inv = np.linalg.inv(matrix)
+    raw_clean = gdir @ inv.T + offset
+    sd_u = data.sd_u if data.sd_u is not None else np.full_like(data.u, fit_cfg.default_sample_sd_g)
+    noise_sd = sd_u / np.sqrt(data.count)[:, None]
+    sims = []
+    for _ in range(cfg.n_sim):
+        sim = _Data(raw_clean + rng.normal(0.0, 1.0, raw_clean.shape) * noise_sd, data.sd_u, data.count, t_s, temp)
+        f = fit_poses(base, sim.poses(), prior=datasheet_prior(base, fit_cfg), theta0_u=base_fit.theta_u, cfg=fit_cfg)
+        sims.append(residual_stats(f.residuals_g, gdir, t_s, temp))
+    discrepancy = {}
+    for key, value in measured.items():
+        vals = np.array([s[key] for s in sims], dtype=float)
+        ok = np.isfinite(vals)
+        mu = float(np.mean(vals[ok])) if ok.any() else float("nan")
+        sdv = float(np.std(vals[ok], ddof=1)) if ok.sum() > 1 else float("nan")
+        z = (value - mu) / sdv if np.isfinite(value) and sdv and np.isfinite(sdv) and sdv > 0 else float("nan")
+        discrepancy[key] = {"measured": _f(value), "simulated_mean": _f(mu), "simulated_sd": _f(sdv), "z": _f(z)}
+    discrepancy["rms_ratio_measured_over_simulated"] = _f(measured["rms_mg"] / discrepancy["rms_mg"]["simulated_mean"])
+    discrepancy["noise_level_mg"] = _f(float(np.sqrt(np.mean(np.sum((noise_sd * gdir) ** 2, axis=1)))) * 1e3)
+
+    # ---------------------------------------------------------------- candidates
+    base_scores = _split_scores(base, data, cfg, fit_cfg, base_fit.theta_u)
+    guard_cfg = GuardConfig.from_section(section(config, "guard"))
+    n = len(data.u)
+    chi2_base = float(np.sum((base_fit.residuals_g / base_fit.sigma_g) ** 2))
+    sigma, q = _whitened_projection(base_fit, data)
+    candidates = []
+    for eff in EFFECTS:
+        ext = ErrorModel(f"{base.base}+{eff}", temp_ref, t_ref)
+        entry: dict[str, Any] = {"name": eff, "selected": False, "evidence": "", "estimate": None}
+        if eff.startswith("temperature") and temp is None:
+            entry["evidence"] = "not testable: the recording has no temperature"
+            candidates.append(entry)
+            continue
+        if eff.startswith("temperature") and np.ptp(temp) < cfg.min_temp_range_c:
+            entry["evidence"] = f"not testable: temperature range {np.ptp(temp):.1f} degC < {cfg.min_temp_range_c} degC"
+            candidates.append(entry)
+            continue
+        if eff == "time_drift_bias" and np.ptp(t_s) < cfg.min_time_span_h * 3600:
+            entry["evidence"] = f"not testable: time span {np.ptp(t_s) / 3600:.1f} h < {cfg.min_time_span_h} h"
+            candidates.append(entry)
+            continue
+        ext_fit = fit_poses(ext, data.poses(), prior=datasheet_prior(ext, fit_cfg),
+                            theta0_u=ext.extend_theta(base_fit.theta_u, base), cfg=fit_cfg)
+        chi2_ext = float(np.sum((ext_fit.residuals_g / ext_fit.sigma_g) ** 2))
+        dof = max(n - base.n_params - 3, 1)
+        fstat = max(chi2_base - chi2_ext, 0.0) / 3.0 / (chi2_ext / dof)
+        pval = float(stats.f.sf(fstat, 3, dof))
+        scores = _split_scores(ext, data, cfg, fit_cfg, ext_fit.theta_u)
+        # a fit that leaves the plausible range, or folds the poses onto a few directions
+        # (a degenerate minimum of the norm objective), explains nothing physical
+        why_implausible = implausible(ext, ext_fit.theta_u, guard_cfg)
+        a_ext = ext.apply(ext_fit.theta_u, data.u, data.temp_c, data.t_s)
+        cosang = np.sum(a_ext * gdir, axis=1) / np.linalg.norm(a_ext, axis=1)
+        moved_deg = float(np.degrees(np.arccos(np.clip(np.median(cosang), -1, 1))))
+        if why_implausible is None and moved_deg > 5.0:
+            why_implausible = f"the fit turns the median pose direction by {moved_deg:.0f} deg (a degenerate fold)"
+        gain_time = 1 - scores["time"] / base_scores["time"] if base_scores["time"] > 0 else float("nan")
+        gain_pose = 1 - scores["pose"] / base_scores["pose"] if base_scores["pose"] > 0 else float("nan")
+        sl = ext.index(eff)
+        unit, factor = EFFECT_UNITS[eff]
+        est = ext_fit.theta_u[sl] * factor
+        est_sd = np.sqrt(np.diag(ext_fit.cov_u)[sl]) * factor
+        cols = _effect_columns(eff, base_fit, data, sigma, q)
+        pattern = cols @ (ext_fit.theta_u[sl])  # whitened residual pattern the effect explains
+        entry.update(
+            chi2=chi2_ext, f_stat=_f(fstat), p_value=pval, heldout_rms_mg_time=_f(scores["time"]),
+            heldout_rms_mg_pose=_f(scores["pose"]), heldout_rms_mg_chrono=_f(scores["chrono"]),
+            gain_time=_f(gain_time), gain_pose=_f(gain_pose), gain_cv=_f(np.nanmean([gain_time, gain_pose])),
+            estimate={"unit": unit, "value": dict(zip("xyz", np.round(est, 6).tolist())),
+                      "std": dict(zip("xyz", np.round(est_sd, 6).tolist()))},
+            _fit=ext_fit, _cols=cols, _pattern=pattern,
+        )
+        gain_cv = np.nanmean([gain_time, gain_pose])
+        passes = (pval < cfg.alpha / len(EFFECTS)) and gain_cv >= cfg.min_gain_rel and why_implausible is None
+        entry["supported"] = bool(passes)
+        entry["evidence"] = (
+            f"F={fstat:.1f} (p={pval:.2g}, 3 extra parameters); held-out RMS {base_scores['time']:.3f} -> "
+            f"{scores['time']:.3f} mg by time blocks, {base_scores['pose']:.3f} -> {scores['pose']:.3f} mg by pose"
+        )
+        if not passes:
+            why = []
+            if pval >= cfg.alpha / len(EFFECTS):
+                why.append("not significant")
+            if not gain_cv >= cfg.min_gain_rel:
+                why.append(f"held-out gain {gain_cv:.1%} (mean of the time and pose splits) below {cfg.min_gain_rel:.0%}")
+            if why_implausible:
+                why.append("implausible: " + why_implausible)
+            entry["evidence"] += "; not supported: " + ", ".join(why)
+        candidates.append(entry)
+
+    supported = [c for c in candidates if c.get("supported")]
+    cause = None
+    ambiguous: list[str] = []
+    if supported:
+        best = min(supported, key=lambda c: c["chi2"])
+        # separability: a rival that also explains the data significantly and fits almost as
+        # well (non-nested comparison, chi2 difference in residual-variance units) cannot be
+        # told apart from the best by these poses
+        s2 = best["chi2"] / max(n - base.n_params - 3, 1)
+        pat = best["_pattern"]
+        for c in candidates:
+            if c is best or "_cols" not in c:
+                continue
+            coef, *_ = np.linalg.lstsq(c["_cols"], pat, rcond=None)
+            overlap = float(1 - np.sum((pat - c["_cols"] @ coef) ** 2) / max(pat @ pat, 1e-300))
+            dchi2 = (c["chi2"] - best["chi2"]) / s2
+            c["reproduces_best_r2"] = _f(overlap)
+            c["dchi2_vs_best"] = _f(dchi2)
+            if c["p_value"] < cfg.alpha / len(EFFECTS) and dchi2 < cfg.separable_dchi2:
+                ambiguous.append(c["name"])
+        if ambiguous:
+            best["evidence"] += (
+                "; the poses cannot separate it from " + ", ".join(ambiguous) +
+                f" (a rival fits within {cfg.separable_dchi2:g} chi2 units and reproduces the same residual pattern):"
+                " no cause named"
+            )
+        else:
+            cause = best["name"]
+            best["selected"] = True
+            best["evidence"] += "; selected"
+
+    # ---------------------------------------------------------------- gain on the chronological split
+    train, test = _time_split(data, cfg.time_split)
+    extended_model = None
+    gain = {"split": f"chronological: fit on the first {cfg.time_split:.0%} of the time span, evaluate on the rest",
+            "n_fit": int(train.sum()), "n_heldout": int(test.sum()),
+            "heldout_rms_mg_before": _f(base_scores["chrono"]), "heldout_rms_mg_after": None}
+    if cause is not None:
+        best = next(c for c in candidates if c["name"] == cause)
+        ext = best["_fit"].model
+        gain["heldout_rms_mg_after"] = best["heldout_rms_mg_chrono"]
+        full = best["_fit"]
+        extended_model = {
+            "model": ext.name, "temp_ref_c": ext.temp_ref_c, "t_ref_s": ext.t_ref_s,
+            "params": ext.to_dict(normalizer.theta_to_raw(ext, full.theta_u)),
+            "std": dict(zip(ext.param_names, np.sqrt(np.diag(normalizer.cov_to_raw(ext, full.cov_u))).tolist())),
+            "residual_rms_mg": full.residual_rms_mg,
+        }
+    for c in candidates:
+        for k in ("_fit", "_cols", "_pattern", "chi2"):
+            c.pop(k, None)
+    return {
+        "n_poses": n,
+        "base_model": {
+            "model": base.name,
+            "params": base.to_dict(normalizer.theta_to_raw(base, base_fit.theta_u)),
+            "std": dict(zip(base.param_names, np.sqrt(np.diag(normalizer.cov_to_raw(base, base_fit.cov_u))).tolist())),
+            "residual_rms_mg": base_fit.residual_rms_mg,
+            "undetermined": [nm for nm, d in zip(base.param_names, base_fit.determined) if not d],
+            "temp_ref_c": temp_ref,
+        },
+        "discrepancy": discrepancy,
+        "effects": candidates,
+        "cause": cause,
+        "ambiguous": ambiguous or None,
+        "extended_model": extended_model,
+        "gain": gain,
+    }
+
+
+def _f(x) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def diagnose_recording(rec, config: dict | None = None, base_model: str = "affine9") -> tuple[dict, dict]:
+    """Diagnose a Recording (samples: still windows first). Returns (report, poses used)."""
+    from selfcal.fit import guess_normalizer, sphere_normalizer
+
+    if rec.kind == "samples":
+        from selfcal.pipeline import _detector_config, _rough_counts_normalizer, _windows_of
+
+        rough = _rough_counts_normalizer(rec.acc) if rec.unit == "counts" else guess_normalizer(rec.unit)
+        w = _windows_of(rough.to_u(rec.acc), rec, _detector_config(config or {}, rec.rate_hz(), rec.unit == "counts"))
+        if len(w) == 0:
+            raise InputError(f"{rec.path}: no still window found")
+        mean = w.mean_g * rough.scale + np.asarray(rough.center)
+        sd = w.sd_g * rough.scale
+        count = w.n.astype(float)
+        t_s = 0.5 * (w.t_start_s + w.t_end_s)
+        temp = w.temp_c if np.any(np.isfinite(w.temp_c)) else None
+    else:
+        mean, sd, t_s, temp = rec.acc, rec.sd, rec.t_s, rec.temp_c
+        if rec.n is not None:
+            count = rec.n.astype(float)
+        else:
+            rate = float(rec.meta.get("rate_hz", 50.0))
+            count = np.maximum(1.0, (rec.duration_s if rec.duration_s is not None else np.ones(len(rec))) * rate)
+    normalizer = sphere_normalizer(mean) if rec.unit == "counts" else guess_normalizer(rec.unit)
+    report = diagnose_poses(mean, sd, count, t_s, temp, normalizer, config, base_model)
+    report["recording"] = rec.path
+    report["unit"] = rec.unit
+    poses = {"mean": mean, "sd": sd, "count": count, "t_s": t_s, "temp_c": temp, "normalizer": normalizer}
+    return report, poses
+
+
+def pose_sigma_mg(mean_u, sd_u, count, cfg: FitConfig | None = None) -> np.ndarray:
+    """Per-pose residual sd (mg), for reports."""
+    return pose_sigma(mean_u, sd_u, count, cfg or FitConfig()) * 1e3
