@@ -220,8 +220,12 @@ def diagnose_poses(
     normalizer: Normalizer | None = None,
     config: dict | None = None,
     base_model: str = "affine9",
+    keep_arrays: bool = False,
 ) -> dict:
     """Diagnose a table of still poses; returns the design-contract JSON (dict).
+
+    With ``keep_arrays`` the dict also holds ``_arrays`` (residuals, covariates and one
+    simulated replicate) for plotting; it is not JSON.
 
     Parameters
     ----------
@@ -268,10 +272,13 @@ def diagnose_poses(
     sd_u = data.sd_u if data.sd_u is not None else np.full_like(data.u, fit_cfg.default_sample_sd_g)
     noise_sd = sd_u / np.sqrt(data.count)[:, None]
     sims = []
+    sim_residuals = None
     for _ in range(cfg.n_sim):
         sim = _Data(raw_clean + rng.normal(0.0, 1.0, raw_clean.shape) * noise_sd, data.sd_u, data.count, t_s, temp)
         f = fit_poses(base, sim.poses(), prior=datasheet_prior(base, fit_cfg), theta0_u=base_fit.theta_u, cfg=fit_cfg)
         sims.append(residual_stats(f.residuals_g, gdir, t_s, temp))
+        if sim_residuals is None:
+            sim_residuals = f.residuals_g
     discrepancy = {}
     for key, value in measured.items():
         vals = np.array([s[key] for s in sims], dtype=float)
@@ -402,10 +409,16 @@ def diagnose_poses(
             "std": dict(zip(ext.param_names, np.sqrt(np.diag(normalizer.cov_to_raw(ext, full.cov_u))).tolist())),
             "residual_rms_mg": full.residual_rms_mg,
         }
+    arrays = None
+    if keep_arrays:
+        arrays = {"t_s": t_s, "temp_c": temp, "gdir": gdir, "res_base_mg": base_fit.residuals_g * 1e3,
+                  "res_sim_mg": None if sim_residuals is None else sim_residuals * 1e3, "res_ext_mg": None}
+        if cause is not None:
+            arrays["res_ext_mg"] = next(c for c in candidates if c["name"] == cause)["_fit"].residuals_g * 1e3
     for c in candidates:
         for k in ("_fit", "_cols", "_pattern", "chi2"):
             c.pop(k, None)
-    return {
+    out = {
         "n_poses": n,
         "base_model": {
             "model": base.name,
@@ -422,6 +435,9 @@ def diagnose_poses(
         "extended_model": extended_model,
         "gain": gain,
     }
+    if arrays is not None:
+        out["_arrays"] = arrays
+    return out
 
 
 def _f(x) -> float | None:
@@ -429,7 +445,8 @@ def _f(x) -> float | None:
     return x if np.isfinite(x) else None
 
 
-def diagnose_recording(rec, config: dict | None = None, base_model: str = "affine9") -> tuple[dict, dict]:
+def diagnose_recording(rec, config: dict | None = None, base_model: str = "affine9",
+                       keep_arrays: bool = False) -> tuple[dict, dict]:
     """Diagnose a Recording (samples: still windows first). Returns (report, poses used)."""
     from selfcal.fit import guess_normalizer, sphere_normalizer
 
@@ -453,7 +470,7 @@ def diagnose_recording(rec, config: dict | None = None, base_model: str = "affin
             rate = float(rec.meta.get("rate_hz", 50.0))
             count = np.maximum(1.0, (rec.duration_s if rec.duration_s is not None else np.ones(len(rec))) * rate)
     normalizer = sphere_normalizer(mean) if rec.unit == "counts" else guess_normalizer(rec.unit)
-    report = diagnose_poses(mean, sd, count, t_s, temp, normalizer, config, base_model)
+    report = diagnose_poses(mean, sd, count, t_s, temp, normalizer, config, base_model, keep_arrays)
     report["recording"] = rec.path
     report["unit"] = rec.unit
     poses = {"mean": mean, "sd": sd, "count": count, "t_s": t_s, "temp_c": temp, "normalizer": normalizer}

@@ -87,3 +87,23 @@ def test_ggir_record_temperature_bias_cuts_heldout_error():
     assert not nl["selected"] and "not supported" in nl["evidence"]
     # and the simulation's noise model is what is most wrong: residuals are correlated in time
     assert rep["discrepancy"]["lag1_autocorr"]["measured"] > 0.5
+
+
+def test_cli_diagnose_json_and_report(tmp_path, capsys):
+    import json
+
+    from selfcal.cli import main
+    from selfcal.io import Recording, write_recording
+
+    poses, _ = hidden_effect_case(np.random.default_rng(11), "temperature_bias", 0.3)
+    rec = Recording(kind="poses", unit="g", t_s=poses["t_s"], acc=poses["mean"], temp_c=poses["temp_c"],
+                    sd=poses["sd"], duration_s=poses["count"] / 20.0, n=poses["count"].astype(np.int64))
+    path = tmp_path / "poses.csv"
+    write_recording(path, rec)
+    assert main(["diagnose", str(path), "--json", "--report", str(tmp_path / "rep")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["cause"] == "temperature_bias"
+    assert {e["name"] for e in out["effects"]} == set(EFFECT_RANGES)
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "What the simulation gets wrong" in md and "temperature_bias" in md
+    assert (tmp_path / "rep" / "residual_vs_temp_time.png").stat().st_size > 1000

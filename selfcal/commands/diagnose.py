@@ -1,0 +1,44 @@
+"""``selfcal diagnose REC [--json] [--report DIR]``."""
+
+from __future__ import annotations
+
+import json
+
+from selfcal.config import load_config
+from selfcal.io import read_recording
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("recording", metavar="REC", help="recording CSV (kind=samples or kind=poses)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    parser.add_argument("--report", metavar="DIR", help="write a Markdown report with plots into DIR")
+    parser.add_argument("--base-model", default="affine9", help="base model (default affine9)")
+
+
+def run(args) -> int:
+    from selfcal.diagnose import diagnose_recording
+
+    cfg = load_config(args.config)
+    rec = read_recording(args.recording)
+    report, _ = diagnose_recording(rec, cfg, args.base_model, keep_arrays=bool(args.report))
+    if args.report:
+        from selfcal.report import write_report
+
+        path = write_report(report, args.report)
+        report["report"] = str(path)
+    report.pop("_arrays", None)
+    if args.json:
+        print(json.dumps(report))
+        return 0
+    g = report["gain"]
+    print(f"{args.recording}: {report['n_poses']} poses; base {report['base_model']['model']} "
+          f"RMS {report['base_model']['residual_rms_mg']:.3f} mg "
+          f"(simulated: {report['discrepancy']['rms_mg']['simulated_mean']:.3f} mg)")
+    for e in report["effects"]:
+        print(f"  {e['name']:<19} {'SELECTED' if e['selected'] else ('supported' if e.get('supported') else '-'):<10} {e['evidence']}")
+    print(f"  cause: {report['cause']}" + (f" (ambiguous: {report['ambiguous']})" if report.get("ambiguous") else ""))
+    print(f"  held-out RMS {g['heldout_rms_mg_before']:.3f} -> "
+          f"{'%.3f' % g['heldout_rms_mg_after'] if g['heldout_rms_mg_after'] is not None else '-'} mg ({g['split']})")
+    if args.report:
+        print(f"  report: {report['report']}")
+    return 0
