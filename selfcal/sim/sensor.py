@@ -1,0 +1,292 @@
+"""The simulated accelerometer: per-device truth draw and the forward error model.
+
+Forward model (truth convention of ``docs/internals.md``, effects of
+``docs/simulation.md``), for true specific force ``a`` (g, foot frame), true sensor
+temperature ``T`` (degC) and time ``t`` (s since the start of the simulation)::
+
+    dT   = T - temp_ref_c                     t_day = t / 86400
+    l    = a + 1e-3 * q * a**2                              scale_nonlinearity (mg/g^2)
+    M(T) = diag(1 + 1e-6 * ts * dT) @ matrix_true           temperature_scale (ppm/degC)
+    raw  = offset_true + 1e-3 * tb * dT + 1e-3 * db * t_day + inv(M(T)) @ l + noise
+    raw  = clip(lsb * round(raw / lsb), -range, +range)
+
+``tb`` temperature_bias (mg/degC), ``db`` time_drift_bias (mg/day); products are per axis.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from selfcal.sim.config import EFFECT_NAMES, SimConfig
+
+#: Unit of each effect coefficient in the config and in the truth (``coefficients``).
+EFFECT_UNITS = {
+    "temperature_bias": "mg/degC",
+    "temperature_scale": "ppm/degC",
+    "time_drift_bias": "mg/day",
+    "scale_nonlinearity": "mg/g^2",
+}
+
+#: The same coefficient in the units and parameter names of ``selfcal.models``
+#: (raw unit = g): factor from the config unit, parameter names.
+EFFECT_MODEL_PARAMS = {
+    "temperature_bias": (1e-3, ("tbx", "tby", "tbz")),      # g/degC
+    "temperature_scale": (1e-6, ("tsx", "tsy", "tsz")),     # 1/degC
+    "time_drift_bias": (1e-3, ("dbx", "dby", "dbz")),       # g/day
+    "scale_nonlinearity": (1e-3, ("qx", "qy", "qz")),       # 1/g
+}
+
+SECONDS_PER_DAY = 86400.0
+
+
+def _rot(axis: int, angle_rad: float) -> np.ndarray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    r = np.eye(3)
+    r[i, i] = r[j, j] = c
+    r[i, j], r[j, i] = -s, s
+    return r
+
+
+def canonical_params(matrix: np.ndarray, offset: np.ndarray) -> dict[str, float]:
+    """The 9 identifiable parameters of a sensor ``matrix`` (QR, positive diagonal).
+
+    Parameters
+    ----------
+    matrix : ndarray, shape (3, 3), g per raw unit
+        Calibration matrix: ``a = matrix @ (raw - offset)``.
+    offset : ndarray, shape (3,), raw unit
+
+    Returns
+    -------
+    dict
+        ``bx, by, bz`` (raw unit), ``sx, sy, sz`` (g per raw unit), ``nxy, nxz, nyz``
+        (dimensionless) with ``R = diag(s) @ [[1, nxy, nxz], [0, 1, nyz], [0, 0, 1]]``
+        and ``matrix = Q @ R``, ``Q`` a rotation (unobservable from norms).
+    """
+    _, r = canonical_qr(matrix)
+    s = np.diag(r)
+    u = r / s[:, None]
+    off = np.asarray(offset, float)
+    return {
+        "bx": float(off[0]), "by": float(off[1]), "bz": float(off[2]),
+        "sx": float(s[0]), "sy": float(s[1]), "sz": float(s[2]),
+        "nxy": float(u[0, 1]), "nxz": float(u[0, 2]), "nyz": float(u[1, 2]),
+    }
+
+
+def canonical_qr(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """QR of ``matrix`` with ``R`` having a positive diagonal.
+
+    Returns
+    -------
+    q : ndarray, shape (3, 3)
+        Orthogonal factor.
+    r : ndarray, shape (3, 3), g per raw unit
+        Upper-triangular factor; ``R @ (raw - offset)`` has the norm of ``a``.
+    """
+    q, r = np.linalg.qr(np.asarray(matrix, float))
+    sign = np.sign(np.diag(r))
+    sign[sign == 0] = 1.0
+    return q * sign[None, :], r * sign[:, None]
+
+
+@dataclass
+class SensorTruth:
+    """Ground truth of one simulated device.
+
+    Attributes
+    ----------
+    matrix : ndarray, shape (3, 3), g per raw unit
+        ``matrix_true``: calibration matrix including misalignment
+        (``a = matrix @ (raw - offset)`` without effects).
+    offset : ndarray, shape (3,), g (raw unit)
+    effects : dict
+        name -> ndarray shape (3,) coefficients in :data:`EFFECT_UNITS`; zero when the
+        effect is disabled.
+    enabled : tuple of str
+        Effects switched on.
+    temp_ref_c : float
+        Reference temperature of the temperature effects (degC).
+    """
+
+    matrix: np.ndarray
+    offset: np.ndarray
+    effects: dict[str, np.ndarray]
+    enabled: tuple[str, ...]
+    temp_ref_c: float
+    noise_sd_g: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    lsb_g: float = 0.0
+    range_g: float = np.inf
+
+    def params(self) -> dict[str, float]:
+        """Canonical identifiable parameters (see :func:`canonical_params`)."""
+        return canonical_params(self.matrix, self.offset)
+
+    def model_params(self) -> dict[str, float]:
+        """Enabled effect coefficients in ``selfcal.models`` names and units."""
+        out = {}
+        for name in self.enabled:
+            factor, names = EFFECT_MODEL_PARAMS[name]
+            for k, v in zip(names, self.effects[name]):
+                out[k] = float(v) * factor
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (lists of floats)."""
+        _, r = canonical_qr(self.matrix)
+        return {
+            "matrix": self.matrix.tolist(),
+            "offset": self.offset.tolist(),
+            "params": self.params(),
+            "matrix_canonical": r.tolist(),
+            "temp_ref_c": self.temp_ref_c,
+            "time_origin_s": 0.0,
+            "effects": {
+                n: {
+                    "enabled": n in self.enabled,
+                    "coefficients": self.effects[n].tolist(),
+                    "unit": EFFECT_UNITS[n],
+                }
+                for n in EFFECT_NAMES
+            },
+            "effect_params": self.model_params(),
+            "noise_sd_g": self.noise_sd_g.tolist(),
+            "lsb_g": self.lsb_g,
+            "range_g": self.range_g,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "SensorTruth":
+        """Inverse of :meth:`to_dict`."""
+        eff = {n: np.asarray(d["effects"][n]["coefficients"], float) for n in EFFECT_NAMES}
+        enabled = tuple(n for n in EFFECT_NAMES if d["effects"][n]["enabled"])
+        return cls(
+            matrix=np.asarray(d["matrix"], float),
+            offset=np.asarray(d["offset"], float),
+            effects=eff,
+            enabled=enabled,
+            temp_ref_c=float(d["temp_ref_c"]),
+            noise_sd_g=np.asarray(d.get("noise_sd_g", [0, 0, 0]), float),
+            lsb_g=float(d.get("lsb_g", 0.0)),
+            range_g=float(d.get("range_g", np.inf)),
+        )
+
+
+def draw_sensor_truth(config: SimConfig, rng: np.random.Generator) -> SensorTruth:
+    """Draw one device: matrix, offset and effect coefficients.
+
+    Every quantity is drawn whatever the switches, so enabling an effect never changes
+    the other draws of the same seed. Limits are uniform ``+-limit``; effect
+    coefficients are ``sign * U(0.5, 1) * magnitude`` per axis (clearly present when
+    enabled), unless ``coefficients`` are given explicitly.
+
+    Parameters
+    ----------
+    config : SimConfig
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    SensorTruth
+    """
+    sc = config.sensor
+    scale = 1.0 + rng.uniform(-sc.scale_rel, sc.scale_rel, 3)
+    nonorth = np.deg2rad(rng.uniform(-sc.nonorth_deg, sc.nonorth_deg, 3))
+    mis = np.deg2rad(rng.uniform(-sc.misalign_deg, sc.misalign_deg, 3))
+    offset = 1e-3 * rng.uniform(-sc.offset_mg, sc.offset_mg, 3)
+    upper = np.eye(3)
+    upper[0, 1], upper[0, 2], upper[1, 2] = nonorth
+    rotation = _rot(0, mis[0]) @ _rot(1, mis[1]) @ _rot(2, mis[2])
+    matrix = rotation @ np.diag(scale) @ upper
+    effects = {}
+    for name in EFFECT_NAMES:
+        ec = getattr(config.effects, name)
+        sign = rng.choice([-1.0, 1.0], 3)
+        frac = rng.uniform(0.5, 1.0, 3)
+        coef = sign * frac * np.asarray(ec.magnitude, float)
+        if ec.coefficients is not None:
+            coef = np.asarray(ec.coefficients, float)
+        effects[name] = coef if ec.enabled else np.zeros(3)
+    enabled = tuple(n for n in EFFECT_NAMES if getattr(config.effects, n).enabled)
+    return SensorTruth(
+        matrix=matrix,
+        offset=offset,
+        effects=effects,
+        enabled=enabled,
+        temp_ref_c=config.effects.temp_ref_c,
+        noise_sd_g=1e-3 * np.asarray(sc.noise_sd_mg, float),
+        lsb_g=1e-3 * sc.lsb_mg,
+        range_g=sc.range_g,
+    )
+
+
+def sensor_mean(truth: SensorTruth, a_true_g: np.ndarray, temp_c: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+    """Noise-free, unquantised sensor output (the forward model without noise).
+
+    Parameters
+    ----------
+    truth : SensorTruth
+    a_true_g : ndarray, shape (n, 3), g
+        True specific force in the foot frame.
+    temp_c : ndarray, shape (n,), degC
+        True sensor temperature.
+    t_s : ndarray, shape (n,), s
+        Time since the start of the simulation.
+
+    Returns
+    -------
+    ndarray, shape (n, 3), g (raw unit)
+    """
+    a = np.asarray(a_true_g, float)
+    eff = truth.effects
+    on = truth.enabled
+    if "scale_nonlinearity" in on:
+        a = a + 1e-3 * eff["scale_nonlinearity"] * a * a
+    minv = np.linalg.inv(truth.matrix)
+    d_temp = np.asarray(temp_c, float) - truth.temp_ref_c
+    if "temperature_scale" in on:
+        # inv(diag(1 + k dT) M) l = inv(M) @ (l / (1 + k dT))
+        a = a / (1.0 + d_temp[:, None] * (1e-6 * eff["temperature_scale"]))
+    # inv(M) @ a row-wise, as three broadcasts (much faster than a (n,3)@(3,3) matmul)
+    raw = a[:, 0:1] * minv[:, 0]
+    raw += a[:, 1:2] * minv[:, 1]
+    raw += a[:, 2:3] * minv[:, 2]
+    raw += truth.offset
+    if "temperature_bias" in on:
+        raw = raw + 1e-3 * d_temp[:, None] * eff["temperature_bias"]
+    if "time_drift_bias" in on:
+        raw = raw + 1e-3 * (np.asarray(t_s, float)[:, None] / SECONDS_PER_DAY) * eff["time_drift_bias"]
+    return raw
+
+
+def read_out(truth: SensorTruth, raw_mean_g: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+    """Add white noise (per-axis sd), quantise and clip.
+
+    Parameters
+    ----------
+    truth : SensorTruth
+    raw_mean_g : ndarray, shape (n, 3), g
+        Output of :func:`sensor_mean`.
+    rng : numpy.random.Generator or None
+        Noise source; ``None`` or zero ``noise_sd_g`` adds no noise.
+
+    Returns
+    -------
+    ndarray, shape (n, 3), g (raw unit), multiples of ``lsb_g`` when ``lsb_g > 0``
+    """
+    raw = np.array(raw_mean_g, dtype=float, copy=True)
+    if rng is not None and np.any(truth.noise_sd_g > 0):
+        noise = rng.standard_normal(raw.shape)
+        noise *= truth.noise_sd_g
+        raw += noise
+    if truth.lsb_g > 0:
+        raw /= truth.lsb_g
+        np.round(raw, out=raw)
+        raw *= truth.lsb_g
+    if np.isfinite(truth.range_g):
+        np.clip(raw, -truth.range_g, truth.range_g, out=raw)
+    return raw

@@ -1,0 +1,462 @@
+"""The simulation: a planned wear period + one device, streamed as samples or as poses.
+
+:class:`Simulation` ties together the wearer schedule (:mod:`~selfcal.sim.wearer`), the
+foot motion (:mod:`~selfcal.sim.motion`), temperature, pressure and the sensor
+(:mod:`~selfcal.sim.sensor`). All randomness derives from one ``numpy.random.Generator``
+at construction: independent child streams for the device, the plan, the motion, the
+sensor noise, the radio and the poses, so switching an effect on never changes any
+other draw, and :meth:`Simulation.iter_samples` / :meth:`Simulation.poses` can be called
+again and give identical output.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from selfcal.sim.config import SimConfig
+from selfcal.sim.motion import gait_force, gravity_foot, lowpass_noise, move_force
+from selfcal.sim.pressure import pressure_kpa
+from selfcal.sim.sensor import SensorTruth, draw_sensor_truth, read_out, sensor_mean
+from selfcal.sim.temperature import temperature_at
+from selfcal.sim.wearer import (
+    ACTIVITY_NAMES, GAIT, MOVE, OFF, STAIRS, STILL, Schedule, make_schedule,
+)
+
+TRUTH_FORMAT = "selfcal-sim-truth v1"
+TRUTH_CONVENTION = (
+    "raw = offset + inv(matrix) @ a_true (+ effects + noise), a_true in g in the foot frame; "
+    "a_cal = matrix @ (raw - offset); params = QR factor R of matrix (positive diagonal)"
+)
+
+_STREAMS = ("sensor", "schedule", "motion", "noise", "radio", "pressure", "temperature", "poses")
+
+
+@dataclass
+class SampleChunk:
+    """A block of the 20 Hz stream (rows lost on the radio already removed).
+
+    Attributes
+    ----------
+    t_s : ndarray, shape (n,), s
+    acc_g : ndarray, shape (n, 3), g (raw unit)
+        What the insole reports.
+    temp_c : ndarray, shape (n,), degC
+        Reported temperature.
+    pressure_kpa : ndarray, shape (n, 4), kPa
+        Heel, midfoot, 1st metatarsal, toe.
+    a_true_g : ndarray, shape (n, 3), g
+        True specific force, foot frame.
+    temp_true_c : ndarray, shape (n,), degC
+        True sensor temperature (drives the effects).
+    activity : ndarray of int8, shape (n,)
+        Codes of :data:`selfcal.sim.wearer.ACTIVITY_NAMES`.
+    still : ndarray of bool, shape (n,)
+        True still moment (a STILL segment).
+    index : ndarray of int64, shape (n,)
+        Sample index before packet loss (``t_s = index / rate_hz``).
+    """
+
+    t_s: np.ndarray
+    acc_g: np.ndarray
+    temp_c: np.ndarray
+    pressure_kpa: np.ndarray
+    a_true_g: np.ndarray
+    temp_true_c: np.ndarray
+    activity: np.ndarray
+    still: np.ndarray
+    index: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @staticmethod
+    def concatenate(chunks: list["SampleChunk"]) -> "SampleChunk":
+        """Join chunks in order."""
+        names = SampleChunk.__dataclass_fields__
+        return SampleChunk(**{k: np.concatenate([getattr(c, k) for c in chunks]) for k in names})
+
+
+@dataclass
+class PoseTable:
+    """Still windows (one row each), as a still detector would report them.
+
+    Attributes
+    ----------
+    t_s : ndarray, shape (m,), s
+        Window start.
+    duration_s : ndarray, shape (m,), s
+    n : ndarray of int64, shape (m,)
+        Samples received in the window (after packet loss).
+    mean_g, sd_g : ndarray, shape (m, 3), g (raw unit)
+        Mean and per-axis sd of the reported acceleration.
+    temp_c : ndarray, shape (m,), degC
+        Mean reported temperature.
+    pressure_kpa : ndarray, shape (m, 4), kPa
+        Mean pressure per channel.
+    a_true_g : ndarray, shape (m, 3), g
+        True mean specific force (foot frame).
+    temp_true_c : ndarray, shape (m,), degC
+    activity : ndarray of int8, shape (m,)
+    """
+
+    t_s: np.ndarray
+    duration_s: np.ndarray
+    n: np.ndarray
+    mean_g: np.ndarray
+    sd_g: np.ndarray
+    temp_c: np.ndarray
+    pressure_kpa: np.ndarray
+    a_true_g: np.ndarray
+    temp_true_c: np.ndarray
+    activity: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+@dataclass
+class SimTruth:
+    """Everything a metric needs to compare against: device, wearer, seed, config."""
+
+    sensor: SensorTruth
+    config: SimConfig
+    days: float
+    rate_hz: float
+    seed: int | None = None
+    wearer: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (the ``*.truth.json`` content)."""
+        d: dict[str, Any] = {"format": TRUTH_FORMAT, "convention": TRUTH_CONVENTION, "unit": "g"}
+        d.update(self.sensor.to_dict())
+        d.update({
+            "seed": self.seed, "days": self.days, "rate_hz": self.rate_hz,
+            "wearer": self.wearer, "config": self.config.model_dump(mode="json"),
+        })
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "SimTruth":
+        """Inverse of :meth:`to_dict`."""
+        return cls(
+            sensor=SensorTruth.from_dict(d), config=SimConfig.from_section(d["config"]),
+            days=float(d["days"]), rate_hz=float(d["rate_hz"]), seed=d.get("seed"),
+            wearer=d.get("wearer", {}),
+        )
+
+    def write_json(self, path: str | Path) -> None:
+        """Write the truth file."""
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
+
+    @classmethod
+    def read_json(cls, path: str | Path) -> "SimTruth":
+        """Read a truth file written by :meth:`write_json`."""
+        return cls.from_dict(json.loads(Path(path).read_text()))
+
+
+class Simulation:
+    """One device worn by one simulated person for ``days``.
+
+    Parameters
+    ----------
+    config : SimConfig
+    rng : numpy.random.Generator
+        The only source of randomness (one draw of 4 words at construction seeds every
+        child stream).
+    days : float, optional
+        Default ``config.days``.
+    rate_hz : float, optional
+        Default ``config.ble.rate_hz``.
+    seed : int, optional
+        Recorded in the truth (the seed ``rng`` was made from, if known).
+
+    Attributes
+    ----------
+    truth : SimTruth
+    schedule : Schedule
+
+    Examples
+    --------
+    >>> sim = Simulation(SimConfig(), np.random.default_rng(1), days=0.05)
+    >>> n = sum(len(c) for c in sim.iter_samples())
+    """
+
+    def __init__(self, config: SimConfig, rng: np.random.Generator, days: float | None = None,
+                 rate_hz: float | None = None, seed: int | None = None):
+        self.config = config
+        self.days = float(days if days is not None else config.days)
+        self.rate_hz = float(rate_hz or config.ble.rate_hz)
+        root = np.random.SeedSequence(rng.integers(0, 2**63 - 1, size=4).tolist())
+        self._seeds = dict(zip(_STREAMS, root.spawn(len(_STREAMS))))
+        sensor = draw_sensor_truth(config, self._rng("sensor"))
+        self.schedule = make_schedule(config, self._rng("schedule"), self.days, self.rate_hz)
+        self.truth = SimTruth(sensor=sensor, config=config, days=self.days, rate_hz=self.rate_hz,
+                              seed=seed, wearer=wearer_summary(self.schedule))
+
+    def _rng(self, name: str) -> np.random.Generator:
+        return np.random.default_rng(self._seeds[name])
+
+    # ------------------------------------------------------------------ samples
+    def chunk_bounds(self, chunk_s: float | None = None) -> list[tuple[int, int]]:
+        """Segment ranges ``[a, b)`` of each streamed chunk (whole segments)."""
+        s = self.schedule
+        chunk_n = max(1, int(round((chunk_s or self.config.chunk_s) * self.rate_hz)))
+        grp = s.start // chunk_n
+        cuts = np.flatnonzero(np.diff(grp)) + 1
+        edges = np.r_[0, cuts, len(s)]
+        return list(zip(edges[:-1].tolist(), edges[1:].tolist()))
+
+    def iter_samples(self, chunk_s: float | None = None, progress: bool = False) -> Iterator[SampleChunk]:
+        """Stream the whole wear period as :class:`SampleChunk` blocks.
+
+        Parameters
+        ----------
+        chunk_s : float, optional
+            Target chunk length (s); a chunk holds whole segments, so it can be longer.
+            Default ``config.chunk_s`` (1 h).
+        progress : bool
+            Show a tqdm bar on stderr.
+
+        Yields
+        ------
+        SampleChunk
+        """
+        rngs = {k: self._rng(k) for k in ("motion", "noise", "radio", "pressure", "temperature")}
+        bounds = self.chunk_bounds(chunk_s)
+        it = bounds
+        if progress:
+            from tqdm import tqdm
+
+            it = tqdm(bounds, unit="chunk", desc="simulate", leave=False)
+        carry = {"next_packet": 0}
+        for a, b in it:
+            yield self._chunk(a, b, rngs, carry)
+
+    def _chunk(self, a: int, b: int, rngs: dict, carry: dict) -> SampleChunk:
+        s, cfg, rate = self.schedule, self.config, self.rate_hz
+        counts = s.n[a:b]
+        i0 = int(s.start[a])
+        total = int(counts.sum())
+        loc = s.start[a:b] - i0
+        seg = np.repeat(np.arange(a, b), counts)
+        # true specific force: gravity everywhere, then sway, moves, gait
+        f = np.repeat(gravity_foot(s.pitch0[a:b], s.roll0[a:b]), counts, axis=0)
+        motion = s.motion[a:b]
+        phase = np.full(total, np.nan)
+        still_mask = np.repeat(motion == STILL, counts)
+        sway = np.repeat(np.where(motion == STILL, s.sd_g[a:b], 0.0), counts)
+        swaying = sway > 0
+        if swaying.any():
+            k = int(swaying.sum())
+            f[swaying] += lowpass_noise(rngs["motion"], k, rate, cfg.posture.sway_corner_hz) * sway[swaying, None]
+        mv = np.flatnonzero(motion == MOVE)
+        if len(mv):
+            j = a + mv
+            pos = _positions(loc[mv], counts[mv])
+            f[pos] = move_force(s.pitch0[j], s.roll0[j], s.pitch1[j], s.roll1[j], s.sd_g[j], counts[mv],
+                                rngs["motion"], rate)
+        for k in np.flatnonzero(motion == GAIT).tolist():
+            j = a + k
+            n = int(counts[k])
+            fg, ph = gait_force(n, rate, float(s.cycle_s[j]), float(s.stride_m[j]), float(s.slope_rad[j]),
+                                float(s.climb[j]), float(s.pitch0[j]), bool(s.activity[j] == STAIRS),
+                                cfg.gait, rngs["motion"])
+            f[loc[k]:loc[k] + n] = fg
+            phase[loc[k]:loc[k] + n] = ph
+        index = np.arange(i0, i0 + total, dtype=np.int64)
+        t_s = index / rate
+        tau = (index - s.start[seg]) / rate
+        temp_true, _ = temperature_at(tau, s.temp0_c[seg], s.heat0_c[seg], s.temp_target_c[seg],
+                                      s.heat_target_c[seg], s.tau_t_s[seg], s.tau_h_s[seg], s.on_foot[seg])
+        raw = read_out(self.truth.sensor, sensor_mean(self.truth.sensor, f, temp_true, t_s), rngs["noise"])
+        temp_rep = _report_temperature(temp_true, cfg, rngs["temperature"])
+        moving = np.repeat(motion == MOVE, counts)
+        press = pressure_kpa(s.load[seg], phase, moving, s.stand_kpa, cfg.pressure, rngs["pressure"], rate)
+        keep = _radio_keep(index, cfg.ble.samples_per_packet, cfg.ble.packet_loss_rate, rngs["radio"], carry)
+        return SampleChunk(
+            t_s=t_s[keep], acc_g=raw[keep], temp_c=temp_rep[keep], pressure_kpa=press[keep],
+            a_true_g=f[keep], temp_true_c=temp_true[keep], activity=np.repeat(s.activity[a:b], counts)[keep],
+            still=still_mask[keep], index=index[keep],
+        )
+
+    def samples(self) -> SampleChunk:
+        """The whole stream in memory (for short simulations)."""
+        return SampleChunk.concatenate(list(self.iter_samples()))
+
+    # -------------------------------------------------------------------- poses
+    def poses(self) -> PoseTable:
+        """Still windows directly, without per-sample data.
+
+        Every still period of the schedule (the same as the sample stream's) is cut
+        into windows of ``pose_window_s``; windows shorter than ``pose_min_s`` are
+        dropped (after trimming ``pose_trim_s`` off both ends of each period, like the
+        detector). Each window's mean is the noise-free sensor output at the window's mean
+        temperature and mid time, plus the noise of a mean of ``n`` samples (white
+        sensor noise and the low-pass sway); its sd is the per-sample sd with a
+        chi-square sampling spread.
+
+        Returns
+        -------
+        PoseTable
+        """
+        s, cfg, rate = self.schedule, self.config, self.rate_hz
+        rng = self._rng("poses")
+        st_start, st_n, st_seg = s.still_periods()
+        trim = int(round(cfg.pose_trim_s * rate))
+        st_start, st_n = st_start + trim, st_n - 2 * trim
+        ok = st_n > 0
+        st_start, st_n, st_seg = st_start[ok], st_n[ok], st_seg[ok]
+        w_n = max(1, int(round(cfg.pose_window_s * rate)))
+        n_win = -(-st_n // w_n)
+        period = np.repeat(np.arange(len(st_n)), n_win)
+        k = np.arange(len(period)) - np.repeat(np.r_[0, np.cumsum(n_win)[:-1]], n_win)
+        w0 = st_start[period] + k * w_n
+        w1 = np.minimum(w0 + w_n, st_start[period] + st_n[period])
+        ok = (w1 - w0) >= cfg.pose_min_s * rate
+        w0, w1, period = w0[ok], w1[ok], period[ok]
+        seg0 = st_seg[period]
+        m = len(w0)
+        # mean true temperature: 9-point average over the window
+        frac = np.linspace(0.0, 1.0, 9)
+        pts = w0[:, None] + frac[None, :] * (w1 - w0 - 1)[:, None]
+        segp = np.searchsorted(s.start, pts, side="right") - 1
+        tau = (pts - s.start[segp]) / rate
+        temp_pts, _ = temperature_at(tau, s.temp0_c[segp], s.heat0_c[segp], s.temp_target_c[segp],
+                                     s.heat_target_c[segp], s.tau_t_s[segp], s.tau_h_s[segp], s.on_foot[segp])
+        temp_true = temp_pts.mean(axis=1)
+        t_start = w0 / rate
+        dur = (w1 - w0) / rate
+        t_mid = t_start + 0.5 * dur
+        a_true = gravity_foot(s.pitch0[seg0], s.roll0[seg0])
+        truth = self.truth.sensor
+        mean_clean = sensor_mean(truth, a_true, temp_true, t_mid)
+        # samples received
+        spp = cfg.ble.samples_per_packet
+        n_pk = np.maximum((w1 - w0) // spp, 1)
+        n_recv = rng.binomial(n_pk, 1.0 - cfg.ble.packet_loss_rate) * spp
+        n_recv = np.minimum(np.maximum(n_recv, 1), w1 - w0)
+        sway = s.sd_g[seg0]
+        alpha = np.exp(-2 * np.pi * cfg.posture.sway_corner_hz / rate)
+        corr = (1 + alpha) / (1 - alpha)
+        noise_var = truth.noise_sd_g**2 + truth.lsb_g**2 / 12.0
+        var_mean = (noise_var[None, :] + (sway**2 * corr)[:, None]) / n_recv[:, None]
+        mean_g = mean_clean + np.sqrt(var_mean) * rng.standard_normal((m, 3))
+        sd_true = np.sqrt(noise_var[None, :] + (sway**2)[:, None])
+        dof = np.maximum(n_recv - 1, 1)
+        sd_g = sd_true * np.sqrt(rng.chisquare(dof[:, None] * np.ones((1, 3))) / dof[:, None])
+        tc = cfg.temperature
+        temp_rep = temp_true + tc.noise_sd_c / np.sqrt(n_recv) * rng.standard_normal(m)
+        pc = cfg.pressure
+        press = s.load[seg0] * s.stand_kpa + pc.offset_kpa
+        press = np.maximum(press + pc.noise_kpa / np.sqrt(n_recv)[:, None] * rng.standard_normal((m, 4)), 0.0)
+        return PoseTable(
+            t_s=t_start, duration_s=dur, n=n_recv.astype(np.int64), mean_g=mean_g, sd_g=sd_g,
+            temp_c=temp_rep, pressure_kpa=press, a_true_g=a_true, temp_true_c=temp_true,
+            activity=s.activity[seg0],
+        )
+
+
+def _positions(local_start: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Concatenated ``arange(local_start[i], local_start[i] + counts[i])``."""
+    total = int(counts.sum())
+    first = np.r_[0, np.cumsum(counts)[:-1]]
+    return np.repeat(local_start - first, counts) + np.arange(total)
+
+
+def _report_temperature(temp_true_c: np.ndarray, cfg: SimConfig, rng: np.random.Generator) -> np.ndarray:
+    tc = cfg.temperature
+    t = temp_true_c
+    if tc.noise_sd_c > 0:
+        t = t + tc.noise_sd_c * rng.standard_normal(len(t))
+    if tc.lsb_c > 0:
+        t = np.round(t / tc.lsb_c) * tc.lsb_c
+    return t
+
+
+def _radio_keep(index: np.ndarray, spp: int, loss: float, rng: np.random.Generator, carry: dict) -> np.ndarray:
+    """Bernoulli loss per BLE packet of ``spp`` samples; a packet split across chunks
+    keeps the decision drawn when its first sample was generated."""
+    if loss <= 0 or len(index) == 0:
+        return np.ones(len(index), bool)
+    pkt = index // spp
+    p0, p1 = int(pkt[0]), int(pkt[-1])
+    lost = np.empty(p1 - p0 + 1, bool)
+    first_new = carry["next_packet"] - p0  # packets < next_packet were drawn before
+    n_old = max(0, min(first_new, len(lost)))
+    if n_old:
+        lost[:n_old] = carry.get("last_lost", False)
+    lost[n_old:] = rng.random(len(lost) - n_old) < loss
+    carry["next_packet"] = p1 + 1
+    carry["last_lost"] = bool(lost[-1])
+    return ~lost[pkt - p0]
+
+
+def wearer_summary(s: Schedule) -> dict[str, Any]:
+    """Activity fractions, still-period statistics and per-day draws of a schedule."""
+    _, st_n, st_seg = s.still_periods()
+    dur = st_n / s.rate_hz
+    on = s.activity[st_seg] != OFF
+    worn_s = float(s.n[s.on_foot].sum() / s.rate_hz)
+    long_on = dur[on & (dur >= 2.0)]
+    return {
+        "activity_fraction": s.activity_fractions(),
+        "worn_h": worn_s / 3600.0,
+        "still_periods_on_foot_ge2s_per_worn_h": float(len(long_on) / max(worn_s / 3600.0, 1e-9)),
+        "still_duration_on_foot_s_p50": float(np.median(long_on)) if len(long_on) else None,
+        "still_fraction_of_worn_time": float(dur[on].sum() / max(worn_s, 1e-9)),
+        "ambient_c": s.days[:, 0].round(2).tolist(),
+        "foot_c": s.days[:, 1].round(2).tolist(),
+        "walk_heat_c": s.days[:, 2].round(2).tolist(),
+        "stand_kpa": s.stand_kpa.round(2).tolist(),
+        "activity_codes": {str(k): v for k, v in ACTIVITY_NAMES.items()},
+    }
+
+
+def simulate_samples(config: SimConfig, rng: np.random.Generator, days: float | None = None,
+                     seed: int | None = None) -> tuple[SampleChunk, SimTruth]:
+    """Simulate a (short) stream in memory; return the data and the truth.
+
+    Parameters
+    ----------
+    config : SimConfig
+    rng : numpy.random.Generator
+    days : float, optional
+    seed : int, optional
+        Recorded in the truth only.
+
+    Returns
+    -------
+    SampleChunk, SimTruth
+    """
+    sim = Simulation(config, rng, days, seed=seed)
+    return sim.samples(), sim.truth
+
+
+def iter_samples(config: SimConfig, rng: np.random.Generator, days: float | None = None,
+                 chunk_s: float | None = None, seed: int | None = None) -> tuple[Iterator[SampleChunk], SimTruth]:
+    """Stream ``days`` of samples chunk by chunk; return the iterator and the truth.
+
+    Returns
+    -------
+    iterator of SampleChunk, SimTruth
+    """
+    sim = Simulation(config, rng, days, seed=seed)
+    return sim.iter_samples(chunk_s), sim.truth
+
+
+def simulate_poses(config: SimConfig, rng: np.random.Generator, days: float | None = None,
+                   seed: int | None = None) -> tuple[PoseTable, SimTruth]:
+    """Pose-level simulation (still windows only); same wearer as the samples of the
+    same generator state.
+
+    Returns
+    -------
+    PoseTable, SimTruth
+    """
+    sim = Simulation(config, rng, days, seed=seed)
+    return sim.poses(), sim.truth

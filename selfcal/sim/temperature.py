@@ -1,0 +1,111 @@
+"""Sensor temperature: first-order lags between ambient, in-shoe and walking heat.
+
+Per segment the targets are constant, so the temperature has a closed form
+(two exponentials), evaluated vectorised at any local time. State at every segment
+start is carried by :func:`segment_start_states` (a scalar recurrence over segments).
+
+Model (per segment, local time ``tau`` s from the segment start)::
+
+    h(tau)  = H + (h0 - H) exp(-tau / tau_h)                 walking heat (degC)
+    on foot:  dT/dtau = (A + h(tau) - T) / tau_T             A = in-shoe plateau
+    off foot: dT/dtau = (A - T) / tau_T                      A = ambient
+
+with ``H`` the day's walking heat while walking (else 0), ``tau_T`` = ``tau_on_s`` on
+the foot and ``tau_off_s`` off it, ``tau_h`` = ``tau_walk_s``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _b_coef(h0: np.ndarray, heat: np.ndarray, tau_t: np.ndarray, tau_h: np.ndarray, on: np.ndarray) -> np.ndarray:
+    ratio = tau_h / (tau_h - tau_t)
+    return np.where(on, (h0 - heat) * ratio, 0.0)
+
+
+def temperature_at(
+    tau_s: np.ndarray,
+    temp0_c: np.ndarray,
+    heat0_c: np.ndarray,
+    target_c: np.ndarray,
+    heat_target_c: np.ndarray,
+    tau_t_s: np.ndarray,
+    tau_h_s: np.ndarray,
+    on_foot: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form temperature and walking heat at local times (all arrays broadcast).
+
+    Parameters
+    ----------
+    tau_s : ndarray, shape (n,), s
+        Time since the segment start.
+    temp0_c, heat0_c : ndarray, shape (n,), degC
+        Temperature and walking heat at the segment start.
+    target_c : ndarray, shape (n,), degC
+        Plateau ``A`` (in-shoe on the foot, ambient off it).
+    heat_target_c : ndarray, shape (n,), degC
+        Walking-heat target ``H`` (0 when not walking).
+    tau_t_s, tau_h_s : ndarray, shape (n,), s
+        Time constants (``tau_h != tau_t``).
+    on_foot : ndarray of bool, shape (n,)
+
+    Returns
+    -------
+    temp_c : ndarray, shape (n,), degC
+    heat_c : ndarray, shape (n,), degC
+    """
+    eh = np.exp(-tau_s / tau_h_s)
+    et = np.exp(-tau_s / tau_t_s)
+    heat = heat_target_c + (heat0_c - heat_target_c) * eh
+    b = _b_coef(heat0_c, heat_target_c, tau_t_s, tau_h_s, on_foot)
+    base = target_c + np.where(on_foot, heat_target_c, 0.0)
+    c = temp0_c - base - b
+    temp = base + b * eh + c * et
+    return temp, heat
+
+
+def segment_start_states(
+    dur_s: np.ndarray,
+    target_c: np.ndarray,
+    heat_target_c: np.ndarray,
+    tau_t_s: np.ndarray,
+    tau_h_s: np.ndarray,
+    on_foot: np.ndarray,
+    temp_init_c: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Temperature and walking heat at the start of every segment.
+
+    Parameters
+    ----------
+    dur_s : ndarray, shape (m,), s
+        Segment durations.
+    target_c, heat_target_c, tau_t_s, tau_h_s, on_foot : ndarray, shape (m,)
+        Per-segment model constants (see :func:`temperature_at`).
+    temp_init_c : float
+        Temperature at time 0.
+
+    Returns
+    -------
+    temp0_c, heat0_c : ndarray, shape (m,), degC
+    """
+    m = len(dur_s)
+    eh = np.exp(-dur_s / tau_h_s)
+    et = np.exp(-dur_s / tau_t_s)
+    ratio = tau_h_s / (tau_h_s - tau_t_s)
+    base = target_c + np.where(on_foot, heat_target_c, 0.0)
+    temp0 = np.empty(m)
+    heat0 = np.empty(m)
+    t, h = float(temp_init_c), 0.0
+    # scalar recurrence: one step per segment (closed form), O(m) Python floats
+    eh_l, et_l, r_l, b_l = eh.tolist(), et.tolist(), ratio.tolist(), base.tolist()
+    ht_l, on_l = heat_target_c.tolist(), on_foot.tolist()
+    for i in range(m):
+        temp0[i] = t
+        heat0[i] = h
+        hs = ht_l[i]
+        b = (h - hs) * r_l[i] if on_l[i] else 0.0
+        c = t - b_l[i] - b
+        t = b_l[i] + b * eh_l[i] + c * et_l[i]
+        h = hs + (h - hs) * eh_l[i]
+    return temp0, heat0

@@ -1,0 +1,407 @@
+"""The wearer's day: a schedule of segments (what the foot / shoe does, when).
+
+A :class:`Schedule` is a columnar table of segments, each one of three motion types:
+
+* ``STILL`` — a fixed orientation with small sway (quiet standing, a sitting posture,
+  the shoe on the floor). These are the still moments the calibrator lives on.
+* ``MOVE`` — a short band-limited movement between two orientations (weight shift,
+  fidget, sit-to-stand, the shoe handled when put on / taken off).
+* ``GAIT`` — a walking or stairs bout (see :mod:`selfcal.sim.motion`).
+
+Time origin: ``t = 0`` is midnight of day 0, the shoe off the foot. Clock times of the
+config (``wear_start_h`` ...) are hours after midnight of each day.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from selfcal.sim.config import LogNormalDuration, SimConfig
+from selfcal.sim.temperature import segment_start_states
+
+SECONDS_PER_DAY = 86400.0
+
+# activity codes (per segment and per sample)
+OFF, SIT, STAND, WALK, STAIRS, HANDLING = 0, 1, 2, 3, 4, 5
+ACTIVITY_NAMES = {OFF: "off_foot", SIT: "sit", STAND: "stand", WALK: "walk", STAIRS: "stairs", HANDLING: "handling"}
+# motion codes
+STILL, MOVE, GAIT = 0, 1, 2
+
+#: Longest still segment; longer ones are split (same still_id) so that the ambient
+#: temperature and the streamed chunks stay fine-grained.
+MAX_STILL_PIECE_S = 1800.0
+
+_COLUMNS = (
+    "dur_s", "activity", "motion", "pitch0", "roll0", "pitch1", "roll1", "sd_g",
+    "cycle_s", "stride_m", "slope_rad", "climb", "l1", "l2", "l3", "l4", "still_id",
+)
+
+
+def _draw(d: LogNormalDuration, rng: np.random.Generator, size: int | None = None) -> np.ndarray | float:
+    x = d.median_s * np.exp(np.log(d.gsd) * rng.standard_normal(size))
+    return np.clip(x, d.min_s, d.max_s)
+
+
+@dataclass
+class Schedule:
+    """Columnar segment table of a simulated wear period.
+
+    Attributes
+    ----------
+    rate_hz : float
+        Sample rate the integer columns refer to.
+    start : ndarray of int64, shape (m,)
+        First sample index of each segment (``t_s = index / rate_hz``).
+    n : ndarray of int64, shape (m,)
+        Samples per segment (>= 1).
+    activity, motion : ndarray of int8, shape (m,)
+        Codes (``OFF, SIT, ...`` and ``STILL, MOVE, GAIT``).
+    pitch0, roll0, pitch1, roll1 : ndarray, shape (m,), rad
+        Orientation at the start and end (equal for STILL). Pitch > 0: toes up;
+        roll > 0: left side (+y) up; roll = pi: upside down.
+    sd_g : ndarray, shape (m,), g
+        Sway sd (STILL) or movement acceleration sd (MOVE).
+    cycle_s, stride_m, slope_rad, climb : ndarray, shape (m,)
+        GAIT bout: mean gait cycle (s), stride length (m), terrain slope (rad),
+        climb (+1 stairs up, -1 down, 0 level).
+    load : ndarray, shape (m, 4)
+        Pressure load per channel relative to the wearer's standing load.
+    still_id : ndarray of int64, shape (m,)
+        Id of the still period (pieces of a long period share it), -1 if not STILL.
+    temp0_c, heat0_c, temp_target_c, heat_target_c, tau_t_s, tau_h_s : ndarray, shape (m,)
+        Temperature model constants and start states (see :mod:`selfcal.sim.temperature`).
+    on_foot : ndarray of bool, shape (m,)
+    days : ndarray of float, shape (n_days, 3)
+        Per-day draws: ambient mean (degC), in-shoe plateau (degC), walking heat (degC).
+    stand_kpa : ndarray, shape (4,), kPa
+        This wearer's standing load per channel.
+    """
+
+    rate_hz: float
+    start: np.ndarray
+    n: np.ndarray
+    activity: np.ndarray
+    motion: np.ndarray
+    pitch0: np.ndarray
+    roll0: np.ndarray
+    pitch1: np.ndarray
+    roll1: np.ndarray
+    sd_g: np.ndarray
+    cycle_s: np.ndarray
+    stride_m: np.ndarray
+    slope_rad: np.ndarray
+    climb: np.ndarray
+    load: np.ndarray
+    still_id: np.ndarray
+    temp0_c: np.ndarray
+    heat0_c: np.ndarray
+    temp_target_c: np.ndarray
+    heat_target_c: np.ndarray
+    tau_t_s: np.ndarray
+    tau_h_s: np.ndarray
+    on_foot: np.ndarray
+    days: np.ndarray
+    stand_kpa: np.ndarray
+
+    @property
+    def n_samples(self) -> int:
+        """Total samples before packet loss."""
+        return int(self.start[-1] + self.n[-1]) if len(self.n) else 0
+
+    def __len__(self) -> int:
+        return len(self.n)
+
+    def activity_fractions(self) -> dict[str, float]:
+        """Share of time per activity (before packet loss)."""
+        tot = self.n.sum()
+        return {name: float(self.n[self.activity == code].sum() / tot) for code, name in ACTIVITY_NAMES.items()}
+
+    def still_periods(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Merged still periods: (start sample, n samples, first segment index), each (k,)."""
+        idx = np.flatnonzero(self.motion == STILL)
+        sid = self.still_id[idx]
+        first = np.r_[True, sid[1:] != sid[:-1]]
+        groups = np.cumsum(first) - 1
+        starts = self.start[idx][first]
+        ns = np.bincount(groups, weights=self.n[idx]).astype(np.int64)
+        return starts, ns, idx[first]
+
+
+class _Builder:
+    """Accumulates segment rows (in seconds) while the day is planned."""
+
+    def __init__(self, cfg: SimConfig, rng: np.random.Generator):
+        self.cfg = cfg
+        self.rng = rng
+        self.rows: list[tuple] = []
+        self.t = 0.0
+        self.orient = (0.0, 0.0)
+        self.load = (0.0, 0.0, 0.0, 0.0)
+        self.next_still = 0
+        p = cfg.posture
+        self.shoe_pitch = np.deg2rad(p.shoe_pitch_deg + p.shoe_pitch_sd_deg * rng.standard_normal())
+
+    # -- primitives -------------------------------------------------------------
+    def still(self, dur: float, act: int, orient: tuple[float, float], sd_g: float, load) -> None:
+        last = self.rows[-1] if self.rows else None
+        if last is not None and last[2] == STILL and (last[3], last[4]) == tuple(orient):
+            sid = last[-1]  # continues the previous still period
+        else:
+            sid = self.next_still
+            self.next_still += 1
+        left = dur
+        while left > 0:
+            piece = min(left, MAX_STILL_PIECE_S)
+            self.rows.append((piece, act, STILL, *orient, *orient, sd_g, 0, 0, 0, 0, *load, sid))
+            left -= piece
+        self.t += dur
+        self.orient = orient
+        self.load = tuple(load)
+
+    def move(self, dur: float, act: int, to: tuple[float, float], sd_g: float, load=None) -> None:
+        load = self.load if load is None else load
+        self.rows.append((dur, act, MOVE, *self.orient, *to, sd_g, 0, 0, 0, 0, *load, -1))
+        self.t += dur
+        self.orient = to
+
+    def gait(self, dur: float, act: int, climb: float) -> None:
+        g = self.cfg.gait
+        rng = self.rng
+        if act == STAIRS:
+            cycle = g.stairs_cycle_s * (1 + 0.05 * rng.standard_normal())
+            stride = g.stairs_stride_length_m
+            slope = 0.0
+        else:
+            cycle = g.cycle_s + g.cycle_sd_s * rng.standard_normal()
+            stride = g.stride_length_m + g.stride_length_sd_m * rng.standard_normal()
+            slope = np.deg2rad(g.slope_sd_deg * rng.standard_normal())
+        cycle = float(np.clip(cycle, 0.7, 2.2))
+        stride = float(max(stride, 0.3))
+        flat = (self.shoe_pitch + slope, 0.0)
+        self.rows.append((dur, act, GAIT, *flat, *flat, 0.0, cycle, stride, slope, climb, np.nan, 0, 0, 0, -1))
+        self.t += dur
+        self.orient = flat
+        self.load = (1.0, 1.0, 1.0, 1.0)
+
+    # -- postures -----------------------------------------------------------------
+    def off_orientation(self) -> tuple[float, float]:
+        p, rng = self.cfg.posture, self.rng
+        probs = np.array([p.off_flat_p, p.off_side_p, p.off_upside_down_p], float)
+        k = rng.choice(3, p=probs / probs.sum())
+        tilt = np.deg2rad(p.off_tilt_sd_deg) * rng.standard_normal(2)
+        if k == 0:
+            return (self.shoe_pitch + tilt[0], tilt[1])
+        if k == 1:
+            return (tilt[0], np.sign(rng.uniform(-1, 1)) * np.pi / 2 + tilt[1])
+        return (-self.shoe_pitch + tilt[0], np.pi + tilt[1])
+
+    def stand_posture(self) -> tuple[tuple[float, float], tuple]:
+        p, rng = self.cfg.posture, self.rng
+        tilt = np.deg2rad(p.stand_tilt_sd_deg) * rng.standard_normal(2)
+        w = 0.15 * rng.standard_normal()
+        share = rng.uniform(0.8, 1.2)
+        load = tuple(share * np.array([1 + w, 1.0, 1 - w, 1 - w]))
+        return (self.shoe_pitch + tilt[0], tilt[1]), load
+
+    def sit_posture(self) -> tuple[tuple[float, float], float, tuple]:
+        p, rng = self.cfg.posture, self.rng
+        probs = np.array([p.sit_flat_p, p.sit_heel_p, p.sit_toes_p, p.sit_crossed_p], float)
+        k = rng.choice(4, p=probs / probs.sum())
+        f = self.cfg.pressure.sit_factor
+        sway = p.sit_sway_sd_mg * 1e-3
+        if k == 0:
+            tilt = np.deg2rad(p.sit_flat_tilt_sd_deg) * rng.standard_normal(2)
+            orient = (self.shoe_pitch + tilt[0], tilt[1])
+            load = f * np.array([1.2, 1.0, 0.9, 0.6]) * (1 + 0.2 * rng.standard_normal())
+        elif k == 1:
+            orient = (np.deg2rad(rng.uniform(*p.sit_heel_pitch_deg)), np.deg2rad(5 * rng.standard_normal()))
+            load = f * np.array([2.0, 0.2, 0.0, 0.0])
+        elif k == 2:
+            orient = (np.deg2rad(rng.uniform(*p.sit_toes_pitch_deg)), np.deg2rad(5 * rng.standard_normal()))
+            load = f * np.array([0.0, 0.2, 1.8, 1.5])
+        else:
+            roll = np.deg2rad(rng.uniform(*p.sit_crossed_roll_deg)) * rng.choice([-1, 1])
+            orient = (np.deg2rad(rng.uniform(-40, 0)), roll)
+            load = np.zeros(4)
+            sway = p.sit_crossed_sway_sd_mg * 1e-3
+        return orient, sway, tuple(np.maximum(load, 0.0))
+
+    # -- activities ---------------------------------------------------------------
+    def _alternating(self, total: float, quiet: LogNormalDuration, move: LogNormalDuration):
+        k = int(total / (quiet.median_s + move.median_s)) * 2 + 8
+        q = _draw(quiet, self.rng, k)
+        m = _draw(move, self.rng, k)
+        out = []
+        used = 0.0
+        for qi, mi in zip(q.tolist(), m.tolist()):
+            if used >= total:
+                break
+            mi = min(mi, total - used)
+            out.append(("move", mi))
+            used += mi
+            if used >= total:
+                break
+            qi = min(qi, total - used)
+            out.append(("quiet", qi))
+            used += qi
+        return out
+
+    def stand(self, total: float) -> None:
+        p = self.cfg.posture
+        for kind, d in self._alternating(total, p.stand_quiet, p.stand_shift):
+            if kind == "move":
+                orient, load = self.stand_posture()
+                self.move(d, STAND, orient, p.stand_shift_sd_g, load=self.load)
+                self._pending = (orient, load)
+            else:
+                orient, load = self._pending
+                self.still(d, STAND, orient, p.stand_sway_sd_mg * 1e-3, load)
+
+    def sit(self, total: float) -> None:
+        p = self.cfg.posture
+        for kind, d in self._alternating(total, p.sit_quiet, p.sit_fidget):
+            if kind == "move":
+                orient, sway, load = self.sit_posture()
+                self.move(d, SIT, orient, p.sit_fidget_sd_g)
+                self._pending = (orient, sway, load)
+            else:
+                orient, sway, load = self._pending
+                self.still(d, SIT, orient, sway, load)
+
+    def off(self, total: float) -> None:
+        p = self.cfg.posture
+        d = min(float(_draw(p.handling, self.rng)), total / 2)
+        orient = self.off_orientation()
+        self.move(d, HANDLING, orient, p.handling_sd_g, load=(0.0, 0.0, 0.0, 0.0))
+        self.still(total - d, OFF, orient, p.off_sway_sd_mg * 1e-3, (0.0, 0.0, 0.0, 0.0))
+
+    def don(self) -> None:
+        p = self.cfg.posture
+        d = float(_draw(p.handling, self.rng))
+        orient, load = self.stand_posture()
+        self.move(d, HANDLING, orient, p.handling_sd_g, load=(0.0, 0.0, 0.0, 0.0))
+
+    def worn(self, total: float) -> None:
+        """Semi-Markov chain of sit / stand / walk / stairs for ``total`` seconds."""
+        a = self.cfg.activity
+        rng = self.rng
+        end = self.t + total
+        state = "stand"
+        rows = {"sit": a.from_sit, "stand": a.from_stand, "walk": a.from_walk, "stairs": a.from_stairs}
+        climb = 1.0
+        while self.t < end - 1e-9:
+            left = end - self.t
+            if state == "sit":
+                self.sit(min(float(_draw(a.sit, rng)), left))
+            elif state == "stand":
+                self.stand(min(float(_draw(a.stand, rng)), left))
+            elif state == "walk":
+                dist = a.walk_long if rng.uniform() < a.walk_long_fraction else a.walk_short
+                self.gait(min(float(_draw(dist, rng)), left), WALK, 0.0)
+            else:
+                climb = -climb if rng.uniform() < 0.8 else climb  # mostly up then down
+                self.gait(min(float(_draw(a.stairs, rng)), left), STAIRS, climb)
+            row = rows[state]
+            names = list(row)
+            pr = np.array([row[k] for k in names], float)
+            state = names[rng.choice(len(names), p=pr / pr.sum())]
+
+
+def make_schedule(config: SimConfig, rng: np.random.Generator, days: float, rate_hz: float | None = None) -> Schedule:
+    """Plan ``days`` of wear: segments, orientations, loads and temperature constants.
+
+    Parameters
+    ----------
+    config : SimConfig
+    rng : numpy.random.Generator
+        Drives every draw of the plan (and nothing else).
+    days : float
+        Length of the simulation (days, from midnight of day 0).
+    rate_hz : float, optional
+        Sample rate of the integer columns (default ``config.ble.rate_hz``).
+
+    Returns
+    -------
+    Schedule
+    """
+    rate = float(rate_hz or config.ble.rate_hz)
+    total_s = float(days) * SECONDS_PER_DAY
+    b = _Builder(config, rng)
+    dc, tc = config.day, config.temperature
+    n_days = int(np.ceil(days)) + 1
+    day_draws = np.column_stack([
+        rng.uniform(*tc.ambient_c, n_days),
+        rng.uniform(*tc.foot_c, n_days),
+        rng.uniform(*tc.walk_heat_c, n_days),
+    ])
+    b.orient = b.off_orientation()
+    d = 0
+    while b.t < total_s:
+        day0 = d * SECONDS_PER_DAY
+        ws = day0 + 3600 * (dc.wear_start_h + dc.wear_start_sd_h * rng.standard_normal())
+        we = day0 + 3600 * (dc.wear_end_h + dc.wear_end_sd_h * rng.standard_normal())
+        ws = max(ws, b.t + 60.0)
+        we = max(we, ws + 3600.0)
+        # night / morning: the shoe stays where it was left (no new orientation)
+        if b.t < ws:
+            b.still(ws - b.t, OFF, b.orient, config.posture.off_sway_sd_mg * 1e-3, (0.0, 0.0, 0.0, 0.0))
+        if b.t >= total_s:
+            break
+        n_breaks = rng.poisson(dc.breaks_per_day)
+        br_start = np.sort(rng.uniform(ws + 1800, max(we - 1800, ws + 1801), n_breaks))
+        br_dur = np.atleast_1d(_draw(dc.break_duration, rng, n_breaks))
+        b.don()
+        for s0, bd in zip(br_start.tolist(), br_dur.tolist()):
+            if s0 <= b.t + 60 or s0 + bd >= we:
+                continue
+            b.worn(s0 - b.t)
+            b.off(bd)
+            b.don()
+        if we > b.t:
+            b.worn(we - b.t)
+        next_ws = day0 + SECONDS_PER_DAY + 3600 * dc.wear_start_h
+        b.off(max(next_ws - b.t, 600.0))
+        d += 1
+    return _finish(b, config, rate, total_s, day_draws)
+
+
+def _finish(b: _Builder, config: SimConfig, rate: float, total_s: float, day_draws: np.ndarray) -> Schedule:
+    arr = np.array(b.rows, dtype=float)
+    cols = {name: arr[:, i] for i, name in enumerate(_COLUMNS)}
+    t_start = np.r_[0.0, np.cumsum(cols["dur_s"])[:-1]]
+    keep = t_start < total_s
+    t_end = np.minimum(t_start + cols["dur_s"], total_s)
+    i0 = np.rint(t_start * rate).astype(np.int64)
+    i1 = np.rint(t_end * rate).astype(np.int64)
+    keep &= i1 > i0
+    sel = {k: v[keep] for k, v in cols.items()}
+    start, n = i0[keep], (i1 - i0)[keep]
+    t0 = start / rate
+    dur = n / rate
+    act = sel["activity"].astype(np.int8)
+    # temperature constants
+    tc = config.temperature
+    day_idx = np.minimum((t0 // SECONDS_PER_DAY).astype(int), len(day_draws) - 1)
+    clock_h = (t0 % SECONDS_PER_DAY) / 3600.0
+    ambient = day_draws[day_idx, 0] + tc.ambient_daily_swing_c * np.cos(2 * np.pi * (clock_h - 15.0) / 24.0)
+    on_foot = np.isin(act, (SIT, STAND, WALK, STAIRS))
+    walking = np.isin(act, (WALK, STAIRS))
+    target = np.where(on_foot, day_draws[day_idx, 1], ambient)
+    heat_t = np.where(walking, day_draws[day_idx, 2], 0.0)
+    tau_t = np.where(on_foot, tc.tau_on_s, tc.tau_off_s)
+    tau_h = np.full(len(n), tc.tau_walk_s)
+    tau_h = np.where(np.isclose(tau_h, tau_t), tau_h * 1.001, tau_h)
+    temp0, heat0 = segment_start_states(dur, target, heat_t, tau_t, tau_h, on_foot, float(ambient[0]))
+    pc = config.pressure
+    stand_kpa = np.asarray(pc.stand_kpa) * np.exp(pc.wearer_sd * b.rng.standard_normal(4))
+    return Schedule(
+        rate_hz=rate, start=start, n=n, activity=act, motion=sel["motion"].astype(np.int8),
+        pitch0=sel["pitch0"], roll0=sel["roll0"], pitch1=sel["pitch1"], roll1=sel["roll1"],
+        sd_g=sel["sd_g"], cycle_s=sel["cycle_s"], stride_m=sel["stride_m"], slope_rad=sel["slope_rad"],
+        climb=sel["climb"], load=np.column_stack([sel["l1"], sel["l2"], sel["l3"], sel["l4"]]),
+        still_id=sel["still_id"].astype(np.int64), temp0_c=temp0, heat0_c=heat0, temp_target_c=target,
+        heat_target_c=heat_t, tau_t_s=tau_t, tau_h_s=tau_h, on_foot=on_foot, days=day_draws,
+        stand_kpa=stand_kpa,
+    )

@@ -1,0 +1,403 @@
+"""Tests of the insole simulator (selfcal.sim) and `selfcal simulate`."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from selfcal.errors import InputError
+from selfcal.sim import (
+    EFFECT_NAMES, SimConfig, Simulation, SimTruth, canonical_params, canonical_qr, make_schedule,
+)
+from selfcal.sim.motion import gait_force, gravity_foot, world_to_foot
+from selfcal.sim.temperature import segment_start_states, temperature_at
+from selfcal.sim.wearer import GAIT, OFF, SIT, STAND, STILL, WALK
+
+# wear from 00:06 to 23:00 (no breaks): short simulations see the worn day
+WORN = {"wear_start_h": 0.1, "wear_start_sd_h": 0.0, "wear_end_h": 23.0, "breaks_per_day": 0.0}
+CLEAN = {"noise_sd_mg": (0.0, 0.0, 0.0), "lsb_mg": 0.0, "range_g": 100.0}
+
+
+def worn_config(**sections) -> SimConfig:
+    return SimConfig().updated(day=WORN, **sections)
+
+
+@pytest.fixture(scope="module")
+def day_sim() -> Simulation:
+    return Simulation(SimConfig(), np.random.default_rng(11), days=1.0)
+
+
+@pytest.fixture(scope="module")
+def day_samples(day_sim):
+    return day_sim.samples()
+
+
+@pytest.fixture(scope="module")
+def worn_samples():
+    sim = Simulation(worn_config(), np.random.default_rng(5), days=0.1)
+    return sim, sim.samples()
+
+
+# ----------------------------------------------------------------- reproducibility
+def test_same_seed_same_data_different_seed_different_data():
+    cfg = worn_config()
+    a = Simulation(cfg, np.random.default_rng(3), days=0.03).samples()
+    b = Simulation(cfg, np.random.default_rng(3), days=0.03).samples()
+    c = Simulation(cfg, np.random.default_rng(4), days=0.03).samples()
+    for name in ("t_s", "acc_g", "temp_c", "pressure_kpa", "a_true_g", "activity"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert len(a) != len(c) or not np.array_equal(a.acc_g, c.acc_g)
+
+
+def test_iterating_twice_and_chunk_size_keep_the_schedule_and_sensor():
+    sim = Simulation(worn_config(), np.random.default_rng(8), days=0.05)
+    first = sim.samples()
+    again = sim.samples()
+    np.testing.assert_array_equal(first.acc_g, again.acc_g)
+    small = list(sim.iter_samples(chunk_s=300.0))
+    assert len(small) > 5
+    joined = type(first).concatenate(small)
+    # the radio loss and the plan do not depend on the chunking
+    np.testing.assert_array_equal(joined.index, first.index)
+    np.testing.assert_array_equal(joined.activity, first.activity)
+
+
+# ----------------------------------------------------------------------- sensor truth
+def test_truth_draw_within_limits_and_canonical_params_reconstruct_r():
+    cfg = SimConfig()
+    for seed in range(20):
+        sim = Simulation(cfg, np.random.default_rng(seed), days=0.01)
+        t = sim.truth.sensor
+        assert np.all(np.abs(t.offset) <= 0.060 + 1e-12)
+        q, r = canonical_qr(t.matrix)
+        np.testing.assert_allclose(q @ r, t.matrix, atol=1e-14)
+        np.testing.assert_allclose(q.T @ q, np.eye(3), atol=1e-14)
+        assert np.all(np.diag(r) > 0)
+        p = t.params()
+        s = np.array([p["sx"], p["sy"], p["sz"]])
+        u = np.array([[1, p["nxy"], p["nxz"]], [0, 1, p["nyz"]], [0, 0, 1]])
+        np.testing.assert_allclose(np.diag(s) @ u, r, atol=1e-14)
+        # scale within +-3 % and axis errors within about the two 0.6 deg draws
+        assert np.all(np.abs(s - 1) < 0.031)
+        assert np.all(np.abs([p["nxy"], p["nxz"], p["nyz"]]) < np.deg2rad(2.5))
+
+
+def test_canonical_r_reproduces_the_norm_of_the_true_specific_force(worn_samples):
+    sim = Simulation(worn_config(sensor=CLEAN, ble={"packet_loss_rate": 0.0}), np.random.default_rng(5), days=0.05)
+    c = sim.samples()
+    t = sim.truth.sensor
+    _, r = canonical_qr(t.matrix)
+    cal = (c.acc_g - t.offset) @ r.T
+    np.testing.assert_allclose(np.linalg.norm(cal, axis=1), np.linalg.norm(c.a_true_g, axis=1), rtol=0, atol=1e-12)
+    # and the full matrix gives back the foot-frame vector itself
+    np.testing.assert_allclose((c.acc_g - t.offset) @ t.matrix.T, c.a_true_g, atol=1e-12)
+    # the raw norm is off by up to several percent: calibration matters
+    assert np.max(np.abs(np.linalg.norm(c.acc_g, axis=1) - np.linalg.norm(c.a_true_g, axis=1))) > 0.005
+
+
+def test_canonical_params_of_a_known_matrix():
+    m = np.diag([1.02, 0.99, 1.01]) @ np.array([[1, 0.01, -0.005], [0, 1, 0.003], [0, 0, 1]])
+    p = canonical_params(m, np.array([0.01, -0.02, 0.03]))
+    assert p["sx"] == pytest.approx(1.02) and p["sz"] == pytest.approx(1.01)
+    assert p["nxy"] == pytest.approx(0.01) and p["nyz"] == pytest.approx(0.003)
+    assert p["by"] == pytest.approx(-0.02)
+
+
+# -------------------------------------------------------------------------- effects
+def _pair(effect: str, coef, days=0.06):
+    """Samples with one effect on and off, same seed, no quantisation/clipping."""
+    base = worn_config(sensor={"lsb_mg": 0.0, "range_g": 100.0}, ble={"packet_loss_rate": 0.0})
+    on = base.updated(effects={effect: {"enabled": True, "magnitude": (1.0, 1.0, 1.0), "coefficients": coef}})
+    s_on = Simulation(on, np.random.default_rng(21), days=days)
+    s_off = Simulation(base, np.random.default_rng(21), days=days)
+    a, b = s_on.samples(), s_off.samples()
+    np.testing.assert_array_equal(s_on.truth.sensor.matrix, s_off.truth.sensor.matrix)
+    np.testing.assert_array_equal(a.a_true_g, b.a_true_g)
+    return s_on.truth.sensor, a, b
+
+
+def test_temperature_bias_adds_coefficient_times_delta_t():
+    coef = (0.8, -0.5, 0.3)  # mg/degC
+    truth, a, b = _pair("temperature_bias", coef)
+    d_temp = a.temp_true_c - truth.temp_ref_c
+    assert np.ptp(d_temp) > 5  # the run heats up in the shoe
+    expected = 1e-3 * d_temp[:, None] * np.array(coef)
+    np.testing.assert_allclose(a.acc_g - b.acc_g, expected, atol=1e-12)
+    assert truth.model_params()["tbx"] == pytest.approx(0.8e-3)
+
+
+def test_time_drift_bias_is_linear_in_days():
+    coef = (0.3, 0.2, -0.4)  # mg/day
+    truth, a, b = _pair("time_drift_bias", coef)
+    expected = 1e-3 * (a.t_s[:, None] / 86400.0) * np.array(coef)
+    np.testing.assert_allclose(a.acc_g - b.acc_g, expected, atol=1e-12)
+
+
+def test_temperature_scale_follows_the_matrix_at_temperature():
+    coef = (300.0, -200.0, 250.0)  # ppm/degC
+    truth, a, b = _pair("temperature_scale", coef)
+    d_temp = a.temp_true_c - truth.temp_ref_c
+    k = 1e-6 * np.array(coef)
+    # the noise is identical, so the difference is the noise-free difference
+    minv = np.linalg.inv(truth.matrix)
+    expected = (a.a_true_g / (1 + d_temp[:, None] * k) - a.a_true_g) @ minv.T
+    np.testing.assert_allclose(a.acc_g - b.acc_g, expected, atol=1e-12)
+    # exact inverse: a = diag(1 + k dT) M (raw - offset - noise)
+    clean = truth.offset + (a.a_true_g / (1 + d_temp[:, None] * k)) @ minv.T
+    back = ((1 + d_temp[:, None] * k) * ((clean - truth.offset) @ truth.matrix.T))
+    np.testing.assert_allclose(back, a.a_true_g, atol=1e-12)
+
+
+def test_scale_nonlinearity_is_quadratic_in_the_true_force():
+    coef = (3.0, -2.0, 4.0)  # mg/g^2
+    truth, a, b = _pair("scale_nonlinearity", coef)
+    minv = np.linalg.inv(truth.matrix)
+    expected = (1e-3 * np.array(coef) * a.a_true_g**2) @ minv.T
+    np.testing.assert_allclose(a.acc_g - b.acc_g, expected, atol=1e-12)
+    assert np.max(np.abs(a.a_true_g)) > 1.5  # walking reaches the quadratic range
+
+
+def test_enabling_an_effect_changes_no_other_draw():
+    cfg = SimConfig()
+    base = Simulation(cfg, np.random.default_rng(2), days=0.02).truth.sensor
+    for name in EFFECT_NAMES:
+        t = Simulation(cfg.with_effects([name]), np.random.default_rng(2), days=0.02).truth.sensor
+        np.testing.assert_array_equal(t.matrix, base.matrix)
+        np.testing.assert_array_equal(t.offset, base.offset)
+        assert t.enabled == (name,)
+        mag = np.asarray(getattr(cfg.effects, name).magnitude)
+        assert np.all((np.abs(t.effects[name]) >= 0.5 * mag) & (np.abs(t.effects[name]) <= mag))
+        assert all(np.all(t.effects[n] == 0) for n in EFFECT_NAMES if n != name)
+
+
+# --------------------------------------------------------------------- wearer / day
+def test_a_day_has_rare_short_still_moments_in_the_designed_range():
+    fr, per_h, p50, still = [], [], [], []
+    for seed in range(6):
+        s = make_schedule(SimConfig(), np.random.default_rng(seed), days=1.0)
+        act = s.activity_fractions()
+        worn = 1 - act["off_foot"] - act["handling"]
+        assert 10 < worn * 24 < 17  # hours worn
+        fr.append([act["sit"] / worn, act["stand"] / worn, (act["walk"] + act["stairs"]) / worn])
+        st0, n, seg = s.still_periods()
+        on = s.activity[seg] != OFF
+        dur = n / s.rate_hz
+        stand_dur = dur[s.activity[seg] == STAND]
+        per_h.append(np.sum(on & (dur >= 2)) / (worn * 24))
+        p50.append(np.median(stand_dur))
+        still.append(dur[on].sum() / (worn * 86400))
+        # the night is one still period, on the shoe's sole, side or back
+        assert dur[~on].max() > 6 * 3600
+    fr = np.mean(fr, axis=0)
+    assert 0.5 < fr[0] < 0.8 and 0.12 < fr[1] < 0.35 and 0.05 < fr[2] < 0.2
+    # quiet standing: a few seconds between weight shifts
+    assert 2.0 < np.mean(p50) < 8.0
+    assert 40 < np.mean(per_h) < 300
+    assert 0.5 < np.mean(still) < 0.9
+
+
+def test_walking_is_never_still_for_long_but_has_brief_mid_stance(worn_samples):
+    _, c = worn_samples
+    walk = c.activity == WALK
+    assert walk.sum() > 2000
+    assert not np.any(c.still & walk)
+    a = c.a_true_g
+    norm = np.linalg.norm(a[walk], axis=1)
+    assert np.percentile(norm, 95) > 2.0 and np.percentile(norm, 99) < 8.0
+    # near-still: every axis within 30 mg of the flat-foot gravity vector
+    flat = np.all(np.abs(a - gravity_foot(np.full(len(a), np.deg2rad(-2)), np.zeros(len(a)))) < 0.08, axis=1)
+    steps = np.diff(a, axis=0, prepend=a[:1])
+    quiet = walk & flat & np.all(np.abs(steps) < 0.03, axis=1)
+    d = np.diff(np.r_[0, quiet.astype(int), 0])
+    runs = (np.flatnonzero(d == -1) - np.flatnonzero(d == 1)) / 20.0
+    assert len(runs) > 0.5 * walk.sum() / 20 / 1.1  # about one per stride
+    assert 0.1 <= np.median(runs) <= 0.35
+    assert np.max(runs) < 1.0  # below any still detector's minimum duration
+
+
+def test_gait_cycle_and_heel_strike_in_a_bout():
+    from selfcal.sim.config import GaitConfig
+
+    cfg = GaitConfig(cycle_jitter=0.0, midstance_sd_g=0.0)
+    rate = 100.0
+    f, phase = gait_force(2000, rate, 1.0, 1.35, 0.0, 0.0, 0.0, False, cfg, np.random.default_rng(0))
+    # heel strikes where the phase wraps: 20 strides in 20 s
+    hs = np.flatnonzero(np.diff(phase) < -0.5)
+    assert len(hs) == 20
+    np.testing.assert_allclose(np.diff(hs) / rate, 1.0, atol=0.02)
+    # the impact is the largest vertical force, right after heel strike
+    peak = np.argmax(np.linalg.norm(f, axis=1))
+    assert phase[peak] < 0.05 or phase[peak] > 0.98
+    assert np.max(np.linalg.norm(f, axis=1)) > 2.5
+    # mid-stance: flat foot, 1 g along z
+    mid = (phase > 0.2) & (phase < 0.35)
+    np.testing.assert_allclose(f[mid], np.tile([0, 0, 1.0], (mid.sum(), 1)), atol=1e-9)
+
+
+def test_orientation_helpers():
+    g = gravity_foot(np.deg2rad([0, 90, 0, 0]), np.deg2rad([0, 0, 90, 180]))
+    np.testing.assert_allclose(g, [[0, 0, 1], [1, 0, 0], [0, 1, 0], [0, 0, -1]], atol=1e-12)
+    th, ph = np.deg2rad([10.0, -30.0]), np.deg2rad([5.0, 120.0])
+    np.testing.assert_allclose(world_to_foot(np.tile([0, 0, 1.0], (2, 1)), th, ph), gravity_foot(th, ph), atol=1e-12)
+
+
+# --------------------------------------------------------------------------- pressure
+def test_pressure_follows_the_activity(worn_samples, day_samples):
+    _, c = worn_samples
+    p = c.pressure_kpa
+    stand_still = (c.activity == STAND) & c.still
+    walk = c.activity == WALK
+    assert p[stand_still].sum(axis=1).mean() > 60
+    # steady when standing still: slow sway of a few % only
+    rel_sd = p[stand_still].std(axis=0) / p[stand_still].mean(axis=0)
+    assert np.all(rel_sd[[0, 2]] < 0.5)
+    # walking: every channel swings between near zero (swing) and above standing
+    assert np.all(np.percentile(p[walk], 10, axis=0) < 2.0)
+    assert np.percentile(p[walk][:, 0], 99) > p[stand_still][:, 0].mean()
+    # off the foot: near zero
+    off = day_samples.activity == OFF
+    assert np.all(day_samples.pressure_kpa[off].mean(axis=0) < 1.5)
+    assert np.all(day_samples.pressure_kpa >= 0)
+
+
+# ------------------------------------------------------------------------ temperature
+def test_closed_form_temperature_matches_the_ode():
+    dt = 0.5
+    tau = np.arange(0, 3600, dt)
+    ones = np.ones_like(tau)
+    temp, heat = temperature_at(tau, 20.0 * ones, 1.0 * ones, 31.0 * ones, 4.0 * ones, 600.0 * ones,
+                                900.0 * ones, np.ones_like(tau, bool))
+    # explicit midpoint integration of dh = (H - h)/tau_h, dT = (A + h - T)/tau_T
+    t, h = 20.0, 1.0
+    for _ in range(len(tau) - 1):
+        hm = h + 0.5 * dt * (4.0 - h) / 900.0
+        tm = t + 0.5 * dt * (31.0 + h - t) / 600.0
+        h, t = h + dt * (4.0 - hm) / 900.0, t + dt * (31.0 + hm - tm) / 600.0
+    assert temp[-1] == pytest.approx(t, abs=1e-4)
+    assert heat[-1] == pytest.approx(h, abs=1e-6)
+    # the recurrence over segments agrees with evaluating one long segment
+    t0, h0 = segment_start_states(np.array([1800.0, 1800.0, 10.0]), np.full(3, 31.0), np.full(3, 4.0),
+                                  np.full(3, 600.0), np.full(3, 900.0), np.ones(3, bool), 20.0)
+    at_3600, _ = temperature_at(np.array([3600.0]), np.array([20.0]), np.array([0.0]), np.array([31.0]),
+                                np.array([4.0]), np.array([600.0]), np.array([900.0]), np.array([True]))
+    assert t0[2] == pytest.approx(at_3600[0], abs=1e-9)
+    assert t0[0] == 20.0 and h0[0] == 0.0
+
+
+def test_temperature_ranges_over_a_day(day_sim, day_samples):
+    c = day_samples
+    t = c.temp_true_c
+    amb = day_sim.schedule.days[:, 0]
+    foot = day_sim.schedule.days[:, 1]
+    heat = day_sim.schedule.days[:, 2]
+    assert np.all((amb >= 15) & (amb <= 25)) and np.all((foot >= 28) & (foot <= 33))
+    assert np.all((heat >= 2) & (heat <= 5))
+    assert t.min() >= 15 - 2.5 and t.max() <= 33 + 5 + 0.1
+    night = (c.t_s > 3 * 3600) & (c.t_s < 5 * 3600)
+    assert np.all(np.abs(t[night] - amb[0]) < 3.0)
+    worn_start = c.t_s[np.flatnonzero(c.activity != OFF)[0]]
+    late = (c.activity == SIT) & (c.t_s > worn_start + 3600)
+    # in the shoe: the plateau (plus walking heat); cooler only right after a shoe-off break
+    assert np.mean(t[late] > 27.0) > 0.9
+    assert foot[0] - 1 < np.median(t[late]) < foot[0] + heat[0] + 0.1
+    # reported temperature: noisy and quantised copy
+    assert np.max(np.abs(c.temp_c - t)) < 0.5
+
+
+# ---------------------------------------------------------------------- radio, poses
+def test_packet_loss_rate_is_honoured_per_packet():
+    cfg = worn_config(ble={"packet_loss_rate": 0.1, "samples_per_packet": 4})
+    sim = Simulation(cfg, np.random.default_rng(9), days=0.05)
+    chunks = list(sim.iter_samples(chunk_s=123.0))  # packets straddle chunk edges
+    idx = np.concatenate([c.index for c in chunks])
+    total = sim.schedule.n_samples
+    lost = 1 - len(idx) / total
+    n_pk = total / 4
+    assert abs(lost - 0.1) < 4 * np.sqrt(0.1 * 0.9 / n_pk)
+    # whole packets are lost: every received packet is complete
+    counts = np.bincount(idx // 4)
+    assert set(np.unique(counts[counts > 0])) <= {4}
+    zero = Simulation(worn_config(ble={"packet_loss_rate": 0.0}), np.random.default_rng(9), days=0.01)
+    assert len(zero.samples()) == zero.schedule.n_samples
+
+
+def test_poses_agree_with_the_samples_of_the_same_generator():
+    cfg = worn_config()
+    sim = Simulation(cfg, np.random.default_rng(4), days=0.08)
+    c = sim.samples()
+    poses = sim.poses()
+    assert len(poses) > 50
+    assert np.all(poses.duration_s >= cfg.pose_min_s) and np.all(poses.duration_s <= cfg.pose_window_s + 1e-9)
+    t = c.t_s
+    lo = np.searchsorted(t, poses.t_s)
+    hi = np.searchsorted(t, poses.t_s + poses.duration_s)
+    z = []
+    for k in range(len(poses)):
+        seg = c.acc_g[lo[k]:hi[k]]
+        assert np.all(c.still[lo[k]:hi[k]])
+        se = np.sqrt(poses.sd_g[k] ** 2 / len(seg) + (np.std(seg, axis=0) ** 2) / len(seg)) * 3
+        z.append(np.abs(seg.mean(axis=0) - poses.mean_g[k]) / (se + 1e-4))
+        assert abs(len(seg) - poses.n[k]) <= 0.1 * len(seg) + 3
+    assert np.median(np.concatenate(z)) < 1.0
+    # orientation spread: mostly flat, sitting tilts reach tens of degrees
+    pitch = np.rad2deg(np.arcsin(np.clip(poses.a_true_g[:, 0], -1, 1)))
+    assert np.median(np.abs(pitch)) < 10
+
+
+# ------------------------------------------------------------------ config and truth
+def test_config_validation_and_toml_defaults():
+    from selfcal.config import load_config, section
+
+    assert SimConfig.from_section(section(load_config(), "sim")) == SimConfig()
+    with pytest.raises(InputError, match=r"\[sim\]\.ble\.rate"):
+        SimConfig.from_section({"ble": {"rate": 20}})
+    with pytest.raises(InputError, match="packet_loss_rate"):
+        SimConfig.from_section({"ble": {"packet_loss_rate": 1.5}})
+    with pytest.raises(InputError, match="unknown effect"):
+        SimConfig().with_effects(["magnetism"])
+
+
+def test_truth_round_trip(tmp_path):
+    sim = Simulation(SimConfig().with_effects(["temperature_bias"]), np.random.default_rng(1), days=0.02, seed=1)
+    path = tmp_path / "t.json"
+    sim.truth.write_json(path)
+    back = SimTruth.read_json(path)
+    np.testing.assert_array_equal(back.sensor.matrix, sim.truth.sensor.matrix)
+    assert back.sensor.enabled == ("temperature_bias",)
+    assert back.config == sim.truth.config and back.seed == 1
+    d = json.loads(path.read_text())
+    assert set(d["params"]) == {"bx", "by", "bz", "sx", "sy", "sz", "nxy", "nxz", "nyz"}
+    assert d["effects"]["temperature_bias"]["unit"] == "mg/degC"
+
+
+# -------------------------------------------------------------------------------- CLI
+def test_cli_writes_samples_and_truth(tmp_path, capsys):
+    from selfcal.cli import main
+    from selfcal.io import read_recording
+
+    out = tmp_path / "day.csv"
+    rc = main(["simulate", "--days", "0.01", "--seed", "7", "--out", str(out), "--effects",
+               "temperature_bias,time_drift_bias", "--json"])
+    assert rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    rec = read_recording(out)
+    assert rec.kind == "samples" and rec.unit == "g" and rec.pressure.shape[1] == 4
+    assert len(rec) == summary["rows"] > 0.9 * 0.01 * 86400 * 20
+    truth = json.loads((tmp_path / "day.truth.json").read_text())
+    assert truth["seed"] == 7 and truth["kind"] == "samples"
+    assert truth["effects"]["temperature_bias"]["enabled"] and not truth["effects"]["temperature_scale"]["enabled"]
+    # the file holds what the library produces for the same seed
+    cfg = SimConfig().with_effects(["temperature_bias", "time_drift_bias"])
+    ref = Simulation(cfg, np.random.default_rng(7), days=0.01).samples()
+    np.testing.assert_allclose(rec.acc, ref.acc_g, atol=1e-6)
+
+    out2 = tmp_path / "poses.csv"
+    assert main(["simulate", "--days", "0.02", "--seed", "7", "--out", str(out2), "--kind", "poses"]) == 0
+    rp = read_recording(out2)
+    assert rp.kind == "poses" and len(rp) > 10 and rp.n is not None
+    assert (tmp_path / "poses.truth.json").exists()
+    capsys.readouterr()
+    assert main(["simulate", "--days", "0.01", "--seed", "1", "--out", str(out), "--effects", "bogus"]) == 2
+    assert "unknown effect" in capsys.readouterr().err
