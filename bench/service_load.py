@@ -1,0 +1,277 @@
+"""Load benchmark of the selfcal service on loopback (127.0.0.1 only).
+
+Starts a real ``selfcal serve`` (real OnlineCalibrator, SQLite WAL, synchronous=FULL)
+and a *separate* load process. The load process simulates N insoles at 20 Hz, each
+sending one batch every ``--batch-s`` seconds (open loop: sends are scheduled, not
+paced by responses), over ``--connections`` keep-alive connections with a minimal
+raw-asyncio HTTP/1.1 client (so the client costs little CPU), while a prober issues
+``GET /devices/{id}/calibration`` at ``--get-hz`` and records its latency.
+
+For each device count it prints offered and sustained (acknowledged) samples/s, and
+GET p50/p99; it stops after the first step that cannot sustain 90 % of the offered
+load, or after the last step. Afterwards it reads /metrics to tell whether the refit
+worker kept up (samples fed vs stored).
+
+    python bench/service_load.py                       # JSON and binary batches
+    python bench/service_load.py --devices 1000,2000 --format binary --step-s 6
+
+Numbers depend on the machine (and on what else runs on it); they are not test gates.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import random
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+KEY = "bench-key-0123456789"
+RATE_HZ = 20.0
+
+
+# ------------------------------------------------------------------ data
+def insole_stream(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 3) raw g: still poses (mostly flat, some tilted) of 3-8 s with motion between."""
+    out = []
+    matrix = np.diag(1.0 + rng.uniform(-0.03, 0.03, 3))
+    offset = rng.uniform(-0.05, 0.05, 3)
+    while sum(len(p) for p in out) < n:
+        d = rng.normal(size=3) if rng.random() < 0.4 else np.array([0, 0, 1.0]) + rng.normal(0, 0.08, 3)
+        d /= np.linalg.norm(d)
+        out.append(np.tile(d, (int(rng.uniform(3, 8) * RATE_HZ), 1)))
+        out.append(d + rng.normal(0, 0.4, (int(1.5 * RATE_HZ), 3)))
+    a = np.vstack(out)[:n]
+    return offset + a @ np.linalg.inv(matrix).T + rng.normal(0, 2e-3, a.shape)
+
+
+def encode(fmt: str, seq: int, t: np.ndarray, acc: np.ndarray) -> tuple[bytes, str]:
+    if fmt == "binary":
+        head = struct.pack("<4sqIHH", b"SCB1", seq, len(t), 0, 0)
+        return head + np.ascontiguousarray(t, "<f8").tobytes() + np.ascontiguousarray(acc.T, "<f8").tobytes(), \
+            "application/x-selfcal-batch"
+    import orjson
+
+    body = {"seq": seq, "t_s": t.tolist(), "ax_g": acc[:, 0].tolist(), "ay_g": acc[:, 1].tolist(),
+            "az_g": acc[:, 2].tolist()}
+    return orjson.dumps(body), "application/json"
+
+
+# ------------------------------------------------------------------ raw HTTP client
+class Conn:
+    def __init__(self, host: str, port: int):
+        self.host, self.port = host, port
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+
+    async def request(self, method: str, path: str, body: bytes = b"", ctype: str = "application/json") -> tuple[int, bytes]:
+        if self.writer is None:
+            self.reader, self.writer = await asyncio.open_connection(self.host, self.port)
+        head = (f"{method} {path} HTTP/1.1\r\nHost: {self.host}\r\nAuthorization: Bearer {KEY}\r\n"
+                f"Content-Type: {ctype}\r\nContent-Length: {len(body)}\r\n\r\n").encode()
+        self.writer.write(head + body)
+        raw = await self.reader.readuntil(b"\r\n\r\n")
+        lines = raw.decode("latin-1").split("\r\n")
+        status = int(lines[0].split(" ")[1])
+        length = 0
+        for line in lines[1:]:
+            if line.lower().startswith("content-length:"):
+                length = int(line.split(":", 1)[1])
+        data = await self.reader.readexactly(length) if length else b""
+        return status, data
+
+
+# ------------------------------------------------------------------ load process
+async def load_main(args) -> None:
+    try:
+        import uvloop  # noqa: F401
+
+        asyncio.set_event_loop_policy(uvloop.EventLoopPolicy())
+    except ImportError:
+        pass
+    host, port = "127.0.0.1", args.port
+    rng = np.random.default_rng(args.seed)
+    n_batch = int(round(args.batch_s * RATE_HZ))
+    stream = insole_stream(rng, 20000)
+    steps = [int(x) for x in args.devices.split(",")]
+    max_dev = max(steps)
+    seq = [0] * max_dev
+    cursor = [int(c) for c in rng.integers(0, len(stream) - n_batch, max_dev)]
+    queue: asyncio.Queue = asyncio.Queue()
+    state = {"acked": 0, "errors": 0, "active": 0}
+
+    async def sender():
+        conn = Conn(host, port)
+        while True:
+            dev = await queue.get()
+            s = seq[dev]
+            seq[dev] += 1
+            t = s * args.batch_s + np.arange(n_batch) / RATE_HZ
+            c = cursor[dev]
+            cursor[dev] = (c + n_batch) % (len(stream) - n_batch)
+            body, ctype = encode(args.format, s, t, stream[c : c + n_batch])
+            try:
+                status, _ = await conn.request("POST", f"/devices/bench-{dev:05d}/samples", body, ctype)
+            except (OSError, asyncio.IncompleteReadError):
+                status, conn = 0, Conn(host, port)
+            if status == 200:
+                state["acked"] += n_batch
+            else:
+                state["errors"] += 1
+
+    async def scheduler(n_dev: int, stop: float):
+        # device i sends at phase i/n_dev * batch_s, then every batch_s
+        start = time.monotonic()
+        nxt = [start + (i / n_dev) * args.batch_s for i in range(n_dev)]
+        order = sorted(range(n_dev), key=lambda i: nxt[i])
+        while time.monotonic() < stop:
+            now = time.monotonic()
+            for i in order:
+                if nxt[i] <= now:
+                    queue.put_nowait(i)
+                    nxt[i] += args.batch_s
+            await asyncio.sleep(0.01)
+
+    async def prober(lat: list, stop: float, n_dev: int):
+        conn = Conn(host, port)
+        r = random.Random(args.seed)
+        while time.monotonic() < stop:
+            dev = r.randrange(min(n_dev, max(1, sum(1 for s in seq[:n_dev] if s > 0))))
+            t0 = time.perf_counter()
+            status, _ = await conn.request("GET", f"/devices/bench-{dev:05d}/calibration")
+            if status in (200, 404):
+                lat.append(time.perf_counter() - t0)
+            await asyncio.sleep(1.0 / args.get_hz)
+
+    senders = [asyncio.create_task(sender()) for _ in range(args.connections)]
+    for n_dev in steps:
+        stop = time.monotonic() + args.warmup_s + args.step_s
+        sched = asyncio.create_task(scheduler(n_dev, stop))
+        await asyncio.sleep(args.warmup_s)
+        lat: list[float] = []
+        probe = asyncio.create_task(prober(lat, stop, n_dev))
+        a0, e0, t0 = state["acked"], state["errors"], time.monotonic()
+        await asyncio.sleep(args.step_s)
+        a1, e1, t1 = state["acked"], state["errors"], time.monotonic()
+        await sched
+        await probe
+        offered = n_dev * RATE_HZ
+        sustained = (a1 - a0) / (t1 - t0)
+        lat_ms = np.array(lat) * 1e3 if lat else np.array([np.nan])
+        rec = {"devices": n_dev, "offered_sps": offered, "sustained_sps": round(sustained),
+               "req_per_s": round(sustained / n_batch, 1), "backlog_batches": queue.qsize(),
+               "errors": e1 - e0, "get_p50_ms": round(float(np.percentile(lat_ms, 50)), 2),
+               "get_p99_ms": round(float(np.percentile(lat_ms, 99)), 2), "get_n": len(lat)}
+        print(json.dumps(rec), flush=True)
+        while not queue.empty():  # drain backlog between steps (bounded: the queue only shrinks)
+            queue.get_nowait()
+        if sustained < 0.9 * offered:
+            break
+    for s in senders:
+        s.cancel()
+
+
+# ------------------------------------------------------------------ driver
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def metric_values(port: int) -> dict[str, float]:
+    import httpx
+
+    text = httpx.get(f"http://127.0.0.1:{port}/metrics", headers={"Authorization": f"Bearer {KEY}"}, timeout=30).text
+    out = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, _, value = line.rpartition(" ")
+            out[name] = float(value)
+    return out
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--devices", default="500,1000,2000,5000,10000", help="device counts, one step each")
+    p.add_argument("--batch-s", type=float, default=5.0, help="seconds of samples per batch (100 at 20 Hz)")
+    p.add_argument("--step-s", type=float, default=8.0, help="measured seconds per step")
+    p.add_argument("--warmup-s", type=float, default=2.0)
+    p.add_argument("--connections", type=int, default=32)
+    p.add_argument("--get-hz", type=float, default=100.0)
+    p.add_argument("--format", choices=["json", "binary", "both"], default="both")
+    p.add_argument("--workers", type=int, default=1, help="refit worker threads of the server")
+    p.add_argument("--synchronous", choices=["FULL", "NORMAL"], default="FULL")
+    p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--load-only", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.load_only:
+        asyncio.run(load_main(args))
+        return 0
+
+    formats = ["json", "binary"] if args.format == "both" else [args.format]
+    print(f"selfcal service load: batches of {args.batch_s:g} s ({int(args.batch_s * RATE_HZ)} samples), "
+          f"{args.connections} connections, GET probe {args.get_hz:g} Hz, {os.cpu_count()} CPUs, "
+          f"synchronous={args.synchronous}")
+    for fmt in formats:
+        with tempfile.TemporaryDirectory(prefix="selfcal-bench-") as tmp:
+            port = free_port()
+            env = dict(os.environ, SELFCAL_API_KEYS=f"{KEY}=ingest+read", SELFCAL_SQLITE_SYNCHRONOUS=args.synchronous)
+            server = subprocess.Popen(
+                [sys.executable, "-m", "selfcal.cli", "serve", "--db", f"{tmp}/bench.db", "--port", str(port),
+                 "--workers", str(args.workers), "--log-level", "warning"],
+                env=env, cwd=str(REPO), stderr=subprocess.DEVNULL,
+            )
+            try:
+                import httpx
+
+                for _ in range(300):
+                    try:
+                        if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
+                            break
+                    except httpx.HTTPError:
+                        time.sleep(0.1)
+                print(f"\n[{fmt}] devices  offered/s  sustained/s  req/s  GET p50 ms  GET p99 ms  errors")
+                load = subprocess.Popen(
+                    [sys.executable, __file__, "--load-only", "--port", str(port), "--devices", args.devices,
+                     "--batch-s", str(args.batch_s), "--step-s", str(args.step_s), "--warmup-s", str(args.warmup_s),
+                     "--connections", str(args.connections), "--get-hz", str(args.get_hz), "--format", fmt,
+                     "--seed", str(args.seed)],
+                    stdout=subprocess.PIPE, text=True,
+                )
+                for line in load.stdout:
+                    r = json.loads(line)
+                    print(f"[{fmt}] {r['devices']:7d}  {r['offered_sps']:9.0f}  {r['sustained_sps']:11.0f}  "
+                          f"{r['req_per_s']:5.0f}  {r['get_p50_ms']:10.2f}  {r['get_p99_ms']:10.2f}  {r['errors']:6d}",
+                          flush=True)
+                load.wait(timeout=600)
+                m = metric_values(port)
+                stored = m.get("selfcal_ingest_samples_total", 0)
+                fed = m.get("selfcal_worker_samples_total", 0)
+                refits = sum(v for k, v in m.items() if k.startswith("selfcal_refits_total"))
+                print(f"[{fmt}] stored {stored:.0f} samples, fed to calibrators {fed:.0f} "
+                      f"({100 * fed / max(stored, 1):.0f} %), refits {refits:.0f}, "
+                      f"db commits {m.get('selfcal_db_commits_total', 0):.0f} for "
+                      f"{m.get('selfcal_db_writes_total', 0):.0f} writes")
+            finally:
+                server.send_signal(signal.SIGTERM)
+                try:
+                    server.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    server.kill()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

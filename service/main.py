@@ -1,0 +1,541 @@
+"""The FastAPI app factory: routes exactly as in design.md, engine created in ``lifespan``.
+
+Layers: routes (this module) -> :class:`service.worker.RefitWorker` (calibrators) and
+:class:`service.storage.Storage` (all SQL in ``service/sqlite_store.py``). Routes hold
+no numerics. ``create_app(settings, calibrator_factory=...)`` lets tests inject a fake
+calibrator; ``app.state.store`` / ``app.state.worker`` exist while the app runs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime as _dt
+import logging
+import sys
+import time
+from contextlib import asynccontextmanager
+from typing import Annotated, Any, AsyncIterator
+
+import orjson
+from fastapi import Depends, FastAPI, Path, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from pydantic import BaseModel, ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.responses import PlainTextResponse, Response
+
+from selfcal.errors import InputError
+from service.auth import AuthError, KeyRing
+from service.metrics import Metrics
+from service.schemas import (
+    BINARY_MEDIA_TYPE,
+    DEVICE_ID_PATTERN,
+    BatchAck,
+    CalibrationOut,
+    DeviceOut,
+    DevicesOut,
+    ErrorOut,
+    FactoryCalibrationIn,
+    FieldError,
+    HealthOut,
+    HistoryOut,
+    RollbackIn,
+    SampleBatchIn,
+    VersionOut,
+    batch_request_openapi,
+    check_batch,
+    decode_binary,
+)
+from service.settings import Settings
+from service.sqlite_store import SQLiteStore
+from service.storage import DeviceRecord, NewVersion, Storage, VersionRecord
+from service.worker import CalibratorFactory, RefitWorker
+
+log = logging.getLogger("selfcal.service")
+
+_ERRORS = {
+    401: {"model": ErrorOut, "description": "missing or unknown API key"},
+    403: {"model": ErrorOut, "description": "API key lacks the scope"},
+    404: {"model": ErrorOut, "description": "unknown device or version"},
+    422: {"model": ErrorOut, "description": "invalid input; `field` names it"},
+}
+_BODY_ERRORS = {
+    **_ERRORS,
+    413: {"model": ErrorOut, "description": "body larger than max_body_bytes"},
+    415: {"model": ErrorOut, "description": "unsupported Content-Type"},
+}
+
+
+def _json(obj: Any, status: int = 200, headers: dict[str, str] | None = None) -> Response:
+    return Response(orjson.dumps(obj), status_code=status, media_type="application/json", headers=headers)
+
+
+def _model(obj: BaseModel, status: int = 200) -> Response:
+    return Response(obj.model_dump_json(), status_code=status, media_type="application/json")
+
+
+def _error(status: int, error: str, message: str, field: str | None = None, headers=None) -> Response:
+    return _json({"error": error, "field": field, "message": message}, status, headers)
+
+
+def _iso(ts: float | None) -> str | None:
+    if ts is None:
+        return None
+    return _dt.datetime.fromtimestamp(ts, tz=_dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def _field_of(loc: tuple) -> str:
+    parts = [p for p in loc if p not in ("body", "path", "query", "header")]
+    out = ""
+    for p in parts:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out or "body"
+
+
+def _validation_response(errors: list[dict[str, Any]]) -> Response:
+    err = errors[0]
+    field = _field_of(tuple(err.get("loc", ())))
+    msg = err.get("msg", "invalid value")
+    if err.get("type") == "json_invalid":
+        field = "body"
+    return _error(422, "validation_error", f"{field}: {msg}", field)
+
+
+def _versions_out(v: VersionRecord) -> VersionOut:
+    return VersionOut(
+        version=v.version,
+        status=v.status,
+        source=v.source,
+        created_at=_iso(v.created_at),
+        calibration=v.calibration,
+        provenance=v.provenance,
+    )
+
+
+def _split_determined(calib: dict[str, Any]) -> tuple[list[str], list[str]]:
+    det = calib.get("determined", calib.get("determined_params"))
+    und = calib.get("undetermined", calib.get("undetermined_params"))
+    if det is not None or und is not None:
+        return list(det or []), list(und or [])
+    std = calib.get("std") or {}
+    params = calib.get("params") or {}
+    det = [k for k in params if std.get(k) is not None]
+    und = [k for k in params if std.get(k) is None]
+    return det, und
+
+
+def calibration_out(device_id: str, dev: DeviceRecord, ver: VersionRecord | None) -> CalibrationOut:
+    calib = ver.calibration if ver else {}
+    det, und = _split_determined(calib) if ver else ([], [])
+    cstatus = dev.calibrator_status if dev.calibrator_status in ("uncalibrated", "provisional", "calibrated") else None
+    return CalibrationOut(
+        device_id=device_id,
+        version=ver.version if ver else None,
+        status=ver.status if ver else "uncalibrated",
+        source=ver.source if ver else None,
+        model=calib.get("model"),
+        params=calib.get("params"),
+        std=calib.get("std"),
+        matrix=calib.get("matrix"),
+        offset=calib.get("offset"),
+        n_poses=calib.get("n_poses"),
+        residual_rms_mg=calib.get("residual_rms_mg"),
+        updated_at=_iso(ver.created_at) if ver else None,
+        determined=det,
+        undetermined=und,
+        last_refit=dev.last_refit,
+        calibrator_status=cstatus,
+        samples_processed=dev.samples_processed,
+        batches_stored=dev.batches_stored,
+        processed_seq=dev.processed_seq,
+    )
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
+    declared = request.headers.get("content-length")
+    if declared is not None:
+        try:
+            if int(declared) > limit:
+                raise FieldError("body", f"{declared} bytes exceed the limit of {limit}", 413)
+        except ValueError:
+            raise FieldError("Content-Length", "not an integer", 400) from None
+    chunks: list[bytes] = []
+    size = 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise FieldError("body", f"body exceeds the limit of {limit} bytes", 413)
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _content_type(request: Request) -> str:
+    return request.headers.get("content-type", "application/json").split(";")[0].strip().lower()
+
+
+async def _json_body(request: Request, model: type[BaseModel], limit: int) -> BaseModel:
+    body = await _read_body(request, limit)
+    if _content_type(request) != "application/json":
+        raise FieldError("Content-Type", "expected application/json", 415)
+    try:
+        return model.model_validate_json(body or b"{}")
+    except ValidationError as exc:
+        raise RequestValidationError(exc.errors()) from None
+
+
+async def _admin_publish(worker: RefitWorker, device_id: str, version: NewVersion, seed: dict) -> int:
+    """Run the (locking, blocking) admin publication off the event loop; bad params -> 422."""
+    try:
+        return await run_in_threadpool(worker.publish_admin, device_id, version, seed)
+    except (InputError, ValueError, KeyError, TypeError) as exc:
+        field = str(exc).split(":", 1)[0] if str(exc).split(":", 1)[0] in ("params", "std", "matrix", "offset") else "params"
+        raise FieldError(field, f"cannot install this calibration: {exc}") from None
+
+
+def get_store(request: Request) -> Storage:
+    return request.app.state.store
+
+
+def get_worker(request: Request) -> RefitWorker:
+    return request.app.state.worker
+
+
+StoreDep = Annotated[Storage, Depends(get_store)]
+WorkerDep = Annotated[RefitWorker, Depends(get_worker)]
+DeviceId = Annotated[
+    str, Path(pattern=DEVICE_ID_PATTERN, description="letter/digit, then up to 63 of [A-Za-z0-9._:-]")
+]
+
+
+def create_app(
+    settings: Settings,
+    calibrator_factory: CalibratorFactory | None = None,
+    config: dict[str, Any] | None = None,
+    store: Storage | None = None,
+) -> FastAPI:
+    """Build the app. ``calibrator_factory`` defaults to ``settings.calibrator``."""
+    # the calibrator persists its config in every state: never hand it [service] (keys)
+    cal_config = {k: v for k, v in (config or {}).items() if k not in ("service", "gateway")}
+    factory = calibrator_factory or CalibratorFactory(
+        settings.calibrator, config=cal_config, model=settings.calibrator_model
+    )
+    keys = KeyRing(settings.api_keys)
+    metrics = Metrics()
+    if len(keys) == 0:
+        log.warning("no API keys configured (SELFCAL_API_KEYS): every request but /healthz gets 401")
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        # CPU-bound refit threads hold the GIL for up to the switch interval (5 ms by
+        # default) before the event loop can answer a GET: shorten it (process-wide).
+        sys.setswitchinterval(settings.gil_switch_interval_s)
+        st = store or SQLiteStore(
+            settings.db_path,
+            synchronous=settings.sqlite_synchronous,
+            group_commit_max_ops=settings.group_commit_max_ops,
+        )
+        st.open()
+        worker = RefitWorker(
+            st,
+            factory,
+            metrics,
+            threads=settings.worker_threads,
+            max_batches_per_cycle=settings.worker_max_batches_per_cycle,
+            time_reset_gap_s=settings.time_reset_gap_s,
+        )
+        worker.start()
+        app.state.store, app.state.worker = st, worker
+        metrics.gauge("selfcal_worker_queue_depth", worker.queue_depth)
+        if isinstance(st, SQLiteStore):
+            metrics.gauge("selfcal_db_write_queue_depth", st.queue_depth)
+            metrics.gauge("selfcal_db_commits_total", lambda: st.commits)
+            metrics.gauge("selfcal_db_writes_total", lambda: st.ops_committed)
+        try:
+            yield
+        finally:
+            worker.stop()
+            st.close()
+
+    app = FastAPI(
+        title="selfcal",
+        version="1",
+        summary="Online self-calibration of wearable accelerometers: ingest, refit, model registry",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.metrics = metrics
+
+    # ------------------------------------------------------------ dependencies
+    def need(scope: str):
+        def check(request: Request) -> None:
+            keys.check(request.headers.get("authorization"), scope)
+
+        return Depends(check)
+
+
+    # ------------------------------------------------------------ errors
+    @app.exception_handler(AuthError)
+    async def _auth(request: Request, exc: AuthError) -> Response:
+        headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
+        return _error(exc.status, "unauthorized" if exc.status == 401 else "forbidden", exc.message, "Authorization", headers)
+
+    @app.exception_handler(FieldError)
+    async def _field(request: Request, exc: FieldError) -> Response:
+        if request.url.path.endswith("/samples"):
+            metrics.inc("selfcal_ingest_rejected_total", status=str(exc.status))
+        kind = {413: "too_large", 415: "unsupported_media_type"}.get(exc.status, "validation_error")
+        return _error(exc.status, kind, f"{exc.field}: {exc.message}", exc.field)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> Response:
+        if request.url.path.endswith("/samples"):
+            metrics.inc("selfcal_ingest_rejected_total", status="422")
+        return _validation_response(list(exc.errors()))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException) -> Response:
+        return _error(exc.status_code, "http_error", str(exc.detail))
+
+    @app.exception_handler(Exception)
+    async def _crash(request: Request, exc: Exception) -> Response:  # pragma: no cover - defensive
+        log.exception("unhandled error on %s", request.url.path)
+        return _error(500, "internal_error", "internal error (see the server log)")
+
+    # ------------------------------------------------------------ latency metrics
+    class _Timing:
+        """Pure ASGI middleware (cheaper than BaseHTTPMiddleware): latency by route."""
+
+        def __init__(self, inner):
+            self.inner = inner
+
+        async def __call__(self, scope, receive, send):
+            if scope["type"] != "http":
+                return await self.inner(scope, receive, send)
+            t0 = time.perf_counter()
+            status = [500]
+
+            async def send_wrapped(message):
+                if message["type"] == "http.response.start":
+                    status[0] = message["status"]
+                await send(message)
+
+            try:
+                await self.inner(scope, receive, send_wrapped)
+            finally:
+                route = scope.get("route")
+                metrics.observe(
+                    "selfcal_http_request_duration_seconds",
+                    time.perf_counter() - t0,
+                    route=getattr(route, "path", "unmatched"),
+                    method=scope.get("method", ""),
+                    code=f"{status[0] // 100}xx",
+                )
+
+    app.add_middleware(_Timing)
+
+    # ------------------------------------------------------------ routes
+    @app.post(
+        "/devices/{device_id}/samples",
+        response_model=BatchAck,
+        responses=_BODY_ERRORS,
+        dependencies=[need("ingest")],
+        openapi_extra=batch_request_openapi(settings.max_batch_samples),
+        summary="ingest one batch of samples (acknowledged after a durable commit)",
+        tags=["ingest"],
+    )
+    async def post_samples(device_id: DeviceId, request: Request, store: StoreDep, worker: WorkerDep) -> Response:
+        body = await _read_body(request, settings.max_body_bytes)
+        ctype = _content_type(request)
+        if ctype == BINARY_MEDIA_TYPE:
+            batch = decode_binary(body)
+            payload = body
+        elif ctype == "application/json":
+            try:
+                parsed = SampleBatchIn.model_validate_json(body)
+            except ValidationError as exc:
+                raise RequestValidationError(exc.errors()) from None
+            batch = parsed.to_batch()
+            payload = None
+        else:
+            raise FieldError("Content-Type", f"expected application/json or {BINARY_MEDIA_TYPE}", 415)
+        check_batch(
+            batch,
+            max_samples=settings.max_batch_samples,
+            max_pressure_channels=settings.max_pressure_channels,
+        )
+        if payload is None:
+            payload = batch.to_bytes()
+        result = await asyncio.wrap_future(
+            store.submit_batch(device_id, batch.seq, batch.n, payload, time.time())
+        )
+        if result.duplicate:
+            metrics.inc("selfcal_ingest_duplicates_total")
+        else:
+            metrics.inc("selfcal_ingest_batches_total")
+            metrics.inc("selfcal_ingest_samples_total", batch.n)
+            if result.late:
+                metrics.inc("selfcal_ingest_late_total")
+            else:
+                worker.notify(device_id)
+        return _json({"device_id": device_id, "seq": batch.seq, "accepted": batch.n, "duplicate": result.duplicate})
+
+    @app.get(
+        "/devices/{device_id}/calibration",
+        response_model=CalibrationOut,
+        responses=_ERRORS,
+        dependencies=[need("read")],
+        summary="the current model of a device, its status and the last refit's outcome",
+        tags=["calibration"],
+    )
+    async def get_calibration(device_id: DeviceId, store: StoreDep) -> Response:
+        found = store.current(device_id)
+        if found is None:
+            raise FieldError("device_id", f"unknown device {device_id!r}", 404)
+        return _model(calibration_out(device_id, *found))
+
+    @app.put(
+        "/devices/{device_id}/calibration",
+        response_model=CalibrationOut,
+        responses=_BODY_ERRORS,
+        dependencies=[need("admin")],
+        openapi_extra={
+            "requestBody": {
+                "required": True,
+                "content": {"application/json": {"schema": FactoryCalibrationIn.model_json_schema()}},
+            }
+        },
+        summary="seed a device with a factory calibration (becomes the served version)",
+        tags=["admin"],
+    )
+    async def put_calibration(device_id: DeviceId, request: Request, store: StoreDep, worker: WorkerDep) -> Response:
+        body = await _json_body(request, FactoryCalibrationIn, settings.max_body_bytes)
+        assert isinstance(body, FactoryCalibrationIn)
+        if body.model != settings.calibrator_model:
+            raise FieldError("model", f"this service runs model {settings.calibrator_model!r}, got {body.model!r}")
+        calib = body.model_dump(exclude_none=True, exclude={"note"})
+        calib.setdefault("params", {})
+        calib.setdefault("std", {})
+        calib["source"] = "factory"
+        version = NewVersion(
+            status="calibrated",
+            source="factory",
+            calibration=calib,
+            provenance={"note": body.note, "seeded_at": time.time()},
+        )
+        seed = {"params": body.params, "std": body.std, "matrix": body.matrix, "offset": body.offset}
+        await _admin_publish(worker, device_id, version, seed)
+        dev, ver = store.current(device_id)
+        return _model(calibration_out(device_id, dev, ver))
+
+    @app.get(
+        "/devices/{device_id}/calibration/history",
+        response_model=HistoryOut,
+        responses=_ERRORS,
+        dependencies=[need("read")],
+        summary="every published version with its provenance",
+        tags=["calibration"],
+    )
+    async def get_history(device_id: DeviceId, store: StoreDep) -> Response:
+        found = store.current(device_id)
+        if found is None:
+            raise FieldError("device_id", f"unknown device {device_id!r}", 404)
+        versions = [_versions_out(v) for v in store.history(device_id)]
+        return _model(HistoryOut(device_id=device_id, current_version=found[0].current_version, versions=versions))
+
+    @app.post(
+        "/devices/{device_id}/calibration/rollback",
+        response_model=CalibrationOut,
+        responses=_BODY_ERRORS,
+        dependencies=[need("admin")],
+        openapi_extra={
+            "requestBody": {
+                "required": False,
+                "content": {"application/json": {"schema": RollbackIn.model_json_schema()}},
+            }
+        },
+        summary="serve an earlier version again (recorded as a new version)",
+        tags=["admin"],
+    )
+    async def post_rollback(device_id: DeviceId, request: Request, store: StoreDep, worker: WorkerDep) -> Response:
+        body = await _json_body(request, RollbackIn, settings.max_body_bytes)
+        assert isinstance(body, RollbackIn)
+        found = store.current(device_id)
+        if found is None:
+            raise FieldError("device_id", f"unknown device {device_id!r}", 404)
+        current = found[0].current_version
+        target = body.to_version
+        if target is None:
+            if not current or current < 2:
+                raise FieldError("to_version", "no earlier version to roll back to", 422)
+            target = current - 1
+        old = store.get_version(device_id, target)
+        if old is None:
+            raise FieldError("to_version", f"device {device_id!r} has no version {target}", 404)
+        version = NewVersion(
+            status=old.status,
+            source="rollback",
+            calibration=old.calibration,
+            provenance={**old.provenance, "rollback_of": old.version, "replaced": current},
+        )
+        seed = {"params": old.calibration.get("params"), "std": old.calibration.get("std"),
+                "matrix": old.calibration.get("matrix"), "offset": old.calibration.get("offset")}
+        await _admin_publish(worker, device_id, version, seed)
+        dev, ver = store.current(device_id)
+        return _model(calibration_out(device_id, dev, ver))
+
+    @app.get(
+        "/devices",
+        response_model=DevicesOut,
+        responses=_ERRORS,
+        dependencies=[need("read")],
+        summary="devices in id order (paged)",
+        tags=["calibration"],
+    )
+    async def get_devices(
+        store: StoreDep,
+        after: Annotated[str | None, Query(max_length=64, description="last device_id of the previous page")] = None,
+        limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    ) -> Response:
+        rows = store.list_devices(after, limit)
+        devices = [
+            DeviceOut(
+                device_id=d.device_id,
+                status=status,
+                version=d.current_version,
+                samples_processed=d.samples_processed,
+                batches_stored=d.batches_stored,
+                updated_at=_iso(d.updated_at),
+            )
+            for d, status in rows
+        ]
+        nxt = devices[-1].device_id if len(devices) == limit else None
+        return _model(DevicesOut(devices=devices, next_after=nxt))
+
+    @app.get(
+        "/healthz",
+        response_model=HealthOut,
+        responses={503: {"model": HealthOut, "description": "database or a worker is down"}},
+        summary="liveness (no key needed)", tags=["ops"])
+    async def healthz(request: Request) -> Response:
+        store: Storage = request.app.state.store
+        worker: RefitWorker = request.app.state.worker
+        db = store.ping()
+        alive = worker.alive()
+        ok = db and alive == settings.worker_threads
+        return _json(
+            {"status": "ok" if ok else "degraded", "db": db, "workers_alive": alive, "pending_devices": worker.queue_depth()},
+            200 if ok else 503,
+        )
+
+    @app.get(
+        "/metrics",
+        response_class=PlainTextResponse,
+        responses={401: _ERRORS[401], 403: _ERRORS[403]},
+        dependencies=[need("read")],
+        summary="Prometheus text format",
+        tags=["ops"],
+    )
+    async def get_metrics(request: Request) -> Response:
+        return PlainTextResponse(metrics.render(), media_type="text/plain; version=0.0.4")
+
+    return app

@@ -1,0 +1,97 @@
+"""Prometheus text-format metrics without a client library (counters, gauges, histograms)."""
+
+from __future__ import annotations
+
+import threading
+from typing import Callable
+
+#: Request-latency histogram buckets (s).
+LATENCY_BUCKETS_S = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5)
+
+
+def _labels(labels: tuple[tuple[str, str], ...]) -> str:
+    if not labels:
+        return ""
+    inner = ",".join(f'{k}="{v}"' for k, v in labels)
+    return "{" + inner + "}"
+
+
+class Metrics:
+    """A small registry; increments are thread-safe (one lock, tiny critical sections)."""
+
+    HELP = {
+        "selfcal_ingest_samples_total": ("counter", "samples stored (duplicates excluded)"),
+        "selfcal_ingest_batches_total": ("counter", "batches stored (duplicates excluded)"),
+        "selfcal_ingest_duplicates_total": ("counter", "resent batches acknowledged, not stored again"),
+        "selfcal_ingest_late_total": ("counter", "batches stored with a seq at or below the processed seq (not fed)"),
+        "selfcal_ingest_rejected_total": ("counter", "rejected sample batches by HTTP status"),
+        "selfcal_worker_samples_total": ("counter", "samples fed to calibrators"),
+        "selfcal_refits_total": ("counter", "refit outcomes by outcome (published or typed reason)"),
+        "selfcal_worker_errors_total": ("counter", "worker cycles that failed (retried)"),
+        "selfcal_worker_skipped_batches_total": ("counter", "batches the calibrator refused (recorded, skipped)"),
+        "selfcal_clock_resets_total": ("counter", "device clocks that went backwards between batches"),
+        "selfcal_worker_queue_depth": ("gauge", "devices waiting for their worker"),
+        "selfcal_db_write_queue_depth": ("gauge", "writes waiting for the SQLite writer"),
+        "selfcal_db_commits_total": ("counter", "SQLite transactions committed (group commits)"),
+        "selfcal_db_writes_total": ("counter", "writes committed (batches, worker cycles, versions)"),
+        "selfcal_http_request_duration_seconds": ("histogram", "request latency by route and status class"),
+    }
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._counters: dict[tuple[str, tuple[tuple[str, str], ...]], float] = {}
+        self._hist: dict[tuple[str, tuple[tuple[str, str], ...]], list[float]] = {}
+        self._gauges: dict[str, Callable[[], float]] = {}
+
+    def inc(self, name: str, value: float = 1.0, **labels: str) -> None:
+        key = (name, tuple(sorted(labels.items())))
+        with self._lock:
+            self._counters[key] = self._counters.get(key, 0.0) + value
+
+    def get(self, name: str, **labels: str) -> float:
+        return self._counters.get((name, tuple(sorted(labels.items()))), 0.0)
+
+    def gauge(self, name: str, fn: Callable[[], float]) -> None:
+        self._gauges[name] = fn
+
+    def observe(self, name: str, value_s: float, **labels: str) -> None:
+        key = (name, tuple(sorted(labels.items())))
+        with self._lock:
+            h = self._hist.get(key)
+            if h is None:
+                h = self._hist[key] = [0.0] * (len(LATENCY_BUCKETS_S) + 2)  # buckets, count, sum
+            for i, edge in enumerate(LATENCY_BUCKETS_S):
+                if value_s <= edge:
+                    h[i] += 1
+                    break
+            h[-2] += 1
+            h[-1] += value_s
+
+    def render(self) -> str:
+        lines: list[str] = []
+        with self._lock:
+            counters = dict(self._counters)
+            hist = {k: list(v) for k, v in self._hist.items()}
+        for name, (kind, help_text) in self.HELP.items():
+            lines.append(f"# HELP {name} {help_text}")
+            lines.append(f"# TYPE {name} {kind}")
+            if name in self._gauges:  # value read from a callable (gauge or counter)
+                lines.append(f"{name} {float(self._gauges[name]()):g}")
+            elif kind == "counter":
+                rows = [(k[1], v) for k, v in counters.items() if k[0] == name] or [((), 0.0)]
+                for labels, value in sorted(rows):
+                    lines.append(f"{name}{_labels(labels)} {value:g}")
+            elif kind == "gauge":
+                lines.append(f"{name} 0")
+            else:
+                for (hname, labels), h in sorted(hist.items()):
+                    if hname != name:
+                        continue
+                    cum = 0.0
+                    for i, edge in enumerate(LATENCY_BUCKETS_S):
+                        cum += h[i]
+                        lines.append(f"{name}_bucket{_labels(labels + (('le', f'{edge:g}'),))} {cum:g}")
+                    lines.append(f"{name}_bucket{_labels(labels + (('le', '+Inf'),))} {h[-2]:g}")
+                    lines.append(f"{name}_count{_labels(labels)} {h[-2]:g}")
+                    lines.append(f"{name}_sum{_labels(labels)} {h[-1]:.6f}")
+        return "\n".join(lines) + "\n"

@@ -1,0 +1,97 @@
+"""Service settings: one validated pydantic model, merged from four layers.
+
+Precedence (lowest first): the defaults below < the ``[service]`` section of the
+TOML config (``configs/default.toml`` overridden by ``--config FILE``) < ``SELFCAL_*``
+environment variables (``SELFCAL_API_KEYS``, ``SELFCAL_DB_PATH`` …) < command-line
+flags of ``selfcal serve``.
+
+We do not use ``pydantic-settings`` (style.md principle 12) to avoid one more runtime
+dependency: the merge is :func:`load_settings`, a dozen lines, and the model itself is
+the same validated ``Settings`` object the template passes around.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Literal, Mapping
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+ENV_PREFIX = "SELFCAL_"
+
+
+class Settings(BaseModel):
+    """Validated settings of the HTTP service (all units in the names)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    db_path: str = Field("selfcal.db", description="SQLite database file (WAL mode)")
+    host: str = Field("127.0.0.1", description="bind address")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port (0 = any free port)")
+    api_keys: str = Field(
+        "",
+        description="comma-separated KEY=SCOPE[+SCOPE...]; scopes: ingest, read, admin",
+        repr=False,
+    )
+    max_body_bytes: int = Field(1_048_576, ge=1024, description="larger bodies get 413")
+    max_batch_samples: int = Field(2000, ge=1, le=100_000, description="samples per batch")
+    max_pressure_channels: int = Field(16, ge=1, le=256)
+    sqlite_synchronous: Literal["FULL", "NORMAL"] = Field(
+        "FULL", description="FULL: an acknowledged batch survives power loss, not only kill -9"
+    )
+    group_commit_max_ops: int = Field(512, ge=1, description="writes per SQLite transaction")
+    worker_threads: int = Field(1, ge=1, le=64, description="refit workers (devices sharded)")
+    worker_max_batches_per_cycle: int = Field(256, ge=1)
+    time_reset_gap_s: float = Field(
+        60.0, gt=0, description="gap inserted when a device clock goes backwards (reboot)"
+    )
+    calibrator: str = Field(
+        "selfcal.calibrator:OnlineCalibrator",
+        description="import path module:Class of the calibrator (tests inject a fake)",
+    )
+    calibrator_model: str = Field("affine9", description="error model passed to the calibrator")
+    gil_switch_interval_s: float = Field(
+        0.001, gt=0, le=0.1, description="sys.setswitchinterval: refit threads yield the GIL to requests sooner"
+    )
+    log_level: Literal["critical", "error", "warning", "info", "debug"] = "info"
+    access_log: bool = False
+
+    @field_validator("api_keys")
+    @classmethod
+    def _keys_parse(cls, value: str) -> str:
+        from service.auth import parse_api_keys
+
+        parse_api_keys(value)  # raises ValueError naming the bad entry
+        return value
+
+
+def load_settings(
+    config_section: Mapping[str, Any] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    environ: Mapping[str, str] | None = None,
+) -> Settings:
+    """Merge defaults < ``[service]`` config < ``SELFCAL_*`` env < ``overrides``.
+
+    Raises ``selfcal.errors.InputError`` naming the bad key.
+    """
+    from selfcal.errors import InputError
+
+    environ = os.environ if environ is None else environ
+    merged: dict[str, Any] = {}
+    for key, value in (config_section or {}).items():
+        if key not in Settings.model_fields:
+            raise InputError(f"config [service].{key}: unknown key")
+        merged[key] = value
+    for name in Settings.model_fields:
+        env_name = ENV_PREFIX + name.upper()
+        if env_name in environ:
+            merged[name] = environ[env_name]
+    for key, value in (overrides or {}).items():
+        if value is not None:
+            merged[key] = value
+    try:
+        return Settings.model_validate(merged)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        field = ".".join(str(p) for p in err["loc"]) or "settings"
+        raise InputError(f"service setting {field}: {err['msg']}") from None

@@ -1,0 +1,134 @@
+"""The storage interface of the service (SQLite today, PostgreSQL next).
+
+Everything the routes and the worker need from a database goes through
+:class:`Storage`; every SQL statement lives in one implementation module
+(``service/sqlite_store.py``). Writes return a ``concurrent.futures.Future`` that
+resolves only after the transaction holding them is committed, which is what lets the
+HTTP layer acknowledge a batch after a durable commit and lets an implementation group
+many writes into one commit.
+
+Invariants every implementation keeps:
+
+* ``(device_id, seq)`` is unique in the raw-batch table: a resent seq is a duplicate.
+* ``commit_progress`` writes the calibrator state, the "processed up to" seq, the feed
+  bookkeeping and any newly published versions in **one** transaction, and only if the
+  stored ``processed_seq`` still equals the one the worker started from.
+* Version numbers of a device are 1, 2, 3, ... in publication order; ``current_version``
+  points at the version served by ``GET /devices/{id}/calibration``.
+"""
+
+from __future__ import annotations
+
+import abc
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+
+class ConflictError(Exception):
+    """The device changed under a worker (another writer advanced processed_seq)."""
+
+
+@dataclass(frozen=True)
+class IngestResult:
+    duplicate: bool
+    late: bool  # stored, but its seq is at or below what was already processed
+
+
+@dataclass
+class DeviceRecord:
+    device_id: str
+    batches_stored: int
+    processed_seq: int | None
+    samples_processed: int
+    calibrator_state: str | None
+    calibrator_status: str | None
+    last_refit: dict[str, Any] | None
+    feed_state: dict[str, Any]
+    current_version: int | None
+    updated_at: float | None
+
+
+@dataclass
+class NewVersion:
+    status: str
+    source: str  # "refit" | "factory" | "rollback"
+    calibration: dict[str, Any]
+    provenance: dict[str, Any]
+
+
+@dataclass
+class Progress:
+    """What one worker cycle writes for one device (one transaction)."""
+
+    device_id: str
+    expected_processed_seq: int | None
+    processed_seq: int | None
+    samples_added: int
+    calibrator_state: str | None
+    calibrator_status: str | None
+    last_refit: dict[str, Any] | None
+    feed_state: dict[str, Any]
+    new_versions: list[NewVersion] = field(default_factory=list)
+
+
+@dataclass
+class VersionRecord:
+    version: int
+    status: str
+    source: str
+    created_at: float
+    calibration: dict[str, Any]
+    provenance: dict[str, Any]
+
+
+class Storage(abc.ABC):
+    """Durable store of raw batches, calibrator states and model versions."""
+
+    @abc.abstractmethod
+    def open(self) -> None:
+        """Create the schema if needed and start any background writer."""
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Finish queued writes and release connections."""
+
+    # -- ingest
+    @abc.abstractmethod
+    def submit_batch(
+        self, device_id: str, seq: int, n_samples: int, payload: bytes, received_at: float
+    ) -> "Future[IngestResult]":
+        """Store a raw batch; the future resolves after the commit (durable ack)."""
+
+    # -- worker
+    @abc.abstractmethod
+    def pending_devices(self) -> list[str]:
+        """Devices with stored batches above their processed seq (for restart)."""
+
+    @abc.abstractmethod
+    def load_device(self, device_id: str) -> DeviceRecord | None: ...
+
+    @abc.abstractmethod
+    def pending_batches(self, device_id: str, after_seq: int | None, limit: int) -> list[tuple[int, bytes]]:
+        """Raw batches with seq > after_seq, in seq order."""
+
+    @abc.abstractmethod
+    def commit_progress(self, progress: Progress) -> "Future[list[int]]":
+        """Write one worker cycle atomically; resolves to the new version numbers."""
+
+    # -- reads
+    @abc.abstractmethod
+    def current(self, device_id: str) -> tuple[DeviceRecord, VersionRecord | None] | None: ...
+
+    @abc.abstractmethod
+    def history(self, device_id: str) -> list[VersionRecord]: ...
+
+    @abc.abstractmethod
+    def get_version(self, device_id: str, version: int) -> VersionRecord | None: ...
+
+    @abc.abstractmethod
+    def list_devices(self, after: str | None, limit: int) -> list[tuple[DeviceRecord, str]]:
+        """Devices ordered by id (after ``after``), each with its served status."""
+
+    @abc.abstractmethod
+    def ping(self) -> bool: ...

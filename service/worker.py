@@ -1,0 +1,416 @@
+"""Background refits: feed committed batches to each device's calibrator, off the request path.
+
+* Devices are sharded over ``worker_threads`` threads by a stable hash of the id, so one
+  device is only ever handled by one thread: its refits never run concurrently.
+* A cycle for a device reads *committed* raw batches above its ``processed_seq`` (in seq
+  order), feeds them to the calibrator, and writes the calibrator state, the new
+  ``processed_seq`` and every version the calibrator published in one transaction
+  (:meth:`Storage.commit_progress`). A crash anywhere before that commit replays the same
+  batches from the previous state on restart - nothing is lost or fed twice.
+* Under load a device's batches pile up between cycles and are fed together, so the
+  per-cycle cost (state serialisation, commit) is amortised.
+* What is published is decided by the calibrator's guard: the worker only records the
+  outcome of every refit (``published`` or the typed reason).
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import math
+import threading
+import zlib
+from collections import OrderedDict
+from typing import Any, Protocol
+
+import numpy as np
+
+from service.metrics import Metrics
+from service.schemas import Batch, decode_binary
+from service.storage import DeviceRecord, NewVersion, Progress, Storage
+
+log = logging.getLogger("selfcal.service.worker")
+
+
+class Calibrator(Protocol):
+    """What the service needs from ``selfcal.calibrator.OnlineCalibrator`` (internals.md)."""
+
+    status: str
+    last_refit: dict[str, Any] | None
+
+    def feed_samples(self, t_s, acc_g, temp_c=None, pressure_kpa=None) -> list[dict[str, Any]]: ...
+
+    def calibration(self) -> dict[str, Any] | None: ...
+
+    def to_json(self) -> str: ...
+
+
+class CalibratorFactory:
+    """Creates and restores calibrators: ``create()`` and ``restore(state_json)``.
+
+    ``import_path`` is ``"module:Class"``; the class must provide ``Class(config=...,
+    model=...)`` and ``Class.from_json(s)``. Tests pass a fake class.
+    """
+
+    def __init__(self, import_path_or_cls: str | type, config: dict | None = None, model: str = "affine9"):
+        self._spec = import_path_or_cls
+        self._cls: type | None = None if isinstance(import_path_or_cls, str) else import_path_or_cls
+        self.config = config
+        self.model = model
+
+    @property
+    def cls(self) -> type:
+        if self._cls is None:
+            module, _, name = str(self._spec).partition(":")
+            self._cls = getattr(importlib.import_module(module), name)
+        return self._cls
+
+    def create(self) -> Calibrator:
+        return self.cls(config=self.config, model=self.model)
+
+    def restore(self, state_json: str) -> Calibrator:
+        return self.cls.from_json(state_json)
+
+
+def jsonable(obj: Any) -> Any:
+    """Plain JSON types: numpy scalars/arrays converted, NaN/inf -> None."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, (np.bool_, bool)):
+        return bool(obj)
+    if isinstance(obj, (np.integer, int)):
+        return int(obj)
+    if isinstance(obj, (np.floating, float)):
+        f = float(obj)
+        return f if math.isfinite(f) else None
+    if obj is None or isinstance(obj, str):
+        return obj
+    return str(obj)
+
+
+def _shard(device_id: str, n: int) -> int:
+    return zlib.crc32(device_id.encode()) % n
+
+
+class _Shard:
+    def __init__(self) -> None:
+        self.pending: "OrderedDict[str, None]" = OrderedDict()
+        self.cond = threading.Condition()
+        self.thread: threading.Thread | None = None
+
+
+class RefitWorker:
+    """Owns the per-device calibrators and the worker threads."""
+
+    def __init__(
+        self,
+        store: Storage,
+        factory: CalibratorFactory,
+        metrics: Metrics,
+        *,
+        threads: int = 1,
+        max_batches_per_cycle: int = 256,
+        time_reset_gap_s: float = 60.0,
+    ):
+        self.store = store
+        self.factory = factory
+        self.metrics = metrics
+        self.max_batches = max_batches_per_cycle
+        self.time_reset_gap_s = time_reset_gap_s
+        self._shards = [_Shard() for _ in range(threads)]
+        self._cache: dict[str, tuple[int | None, Calibrator]] = {}
+        self._locks: dict[str, threading.Lock] = {}
+        self._locks_guard = threading.Lock()
+        self._stop = threading.Event()
+        self.busy = 0  # devices being processed right now
+        self.cycles = 0
+
+    # ------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        for i, shard in enumerate(self._shards):
+            shard.thread = threading.Thread(target=self._loop, args=(shard,), name=f"selfcal-refit-{i}", daemon=True)
+            shard.thread.start()
+        for device_id in self.store.pending_devices():  # resume after a restart
+            self.notify(device_id)
+
+    def stop(self) -> None:
+        self._stop.set()
+        for shard in self._shards:
+            with shard.cond:
+                shard.cond.notify_all()
+        for shard in self._shards:
+            if shard.thread is not None:
+                shard.thread.join(timeout=60)
+
+    def alive(self) -> int:
+        return sum(1 for s in self._shards if s.thread is not None and s.thread.is_alive())
+
+    def queue_depth(self) -> int:
+        return sum(len(s.pending) for s in self._shards)
+
+    def idle(self) -> bool:
+        return self.queue_depth() == 0 and self.busy == 0
+
+    def notify(self, device_id: str) -> None:
+        """A device has new committed batches (cheap; called from the event loop)."""
+        shard = self._shards[_shard(device_id, len(self._shards))]
+        with shard.cond:
+            if device_id not in shard.pending:
+                shard.pending[device_id] = None
+                shard.cond.notify()
+
+    def device_lock(self, device_id: str) -> threading.Lock:
+        with self._locks_guard:
+            lock = self._locks.get(device_id)
+            if lock is None:
+                lock = self._locks[device_id] = threading.Lock()
+            return lock
+
+    # ------------------------------------------------------------ loop
+    def _loop(self, shard: _Shard) -> None:
+        while not self._stop.is_set():
+            with shard.cond:
+                while not shard.pending and not self._stop.is_set():
+                    shard.cond.wait(timeout=1.0)
+                if self._stop.is_set():
+                    return
+                device_id, _ = shard.pending.popitem(last=False)
+                self.busy += 1
+            try:
+                more = self.process(device_id)
+            except Exception:
+                log.exception("refit cycle failed for device %s", device_id)
+                self.metrics.inc("selfcal_worker_errors_total")
+                self._cache.pop(device_id, None)
+                more = True
+                self._stop.wait(0.5)  # back off, then retry from the persisted state
+            finally:
+                with shard.cond:
+                    self.busy -= 1
+            if more:
+                self.notify(device_id)
+
+    def _calibrator(self, rec: DeviceRecord) -> Calibrator:
+        cached = self._cache.get(rec.device_id)
+        if cached is not None and cached[0] == rec.processed_seq:
+            return cached[1]
+        if rec.calibrator_state:
+            return self.factory.restore(rec.calibrator_state)
+        return self.factory.create()
+
+    def _restore(self, rec: DeviceRecord) -> Calibrator:
+        self._cache.pop(rec.device_id, None)
+        if rec.calibrator_state:
+            return self.factory.restore(rec.calibrator_state)
+        return self.factory.create()
+
+    def process(self, device_id: str) -> bool:
+        """One cycle for one device; returns True if batches remain."""
+        with self.device_lock(device_id):
+            rec = self.store.load_device(device_id)
+            if rec is None:
+                return False
+            rows = self.store.pending_batches(device_id, rec.processed_seq, self.max_batches)
+            if not rows:
+                return False
+            cal = self._calibrator(rec)
+            feed = dict(rec.feed_state)
+            batches = [(seq, decode_binary(payload)) for seq, payload in rows]
+            try:
+                events, samples = self._feed(cal, batches, feed, rec)
+            except Exception:
+                log.warning("device %s: calibrator raised; feeding batch by batch", device_id, exc_info=True)
+                cal = self._restore(rec)
+                feed = dict(rec.feed_state)
+                events, samples, cal = self._feed_isolating(cal, batches, feed, rec)
+            versions = self._versions(cal, events, feed)
+            last_refit = jsonable(getattr(cal, "last_refit", None))
+            progress = Progress(
+                device_id=device_id,
+                expected_processed_seq=rec.processed_seq,
+                processed_seq=int(rows[-1][0]),
+                samples_added=samples,
+                calibrator_state=cal.to_json(),
+                calibrator_status=str(cal.status),
+                last_refit=last_refit,
+                feed_state=feed,
+                new_versions=versions,
+            )
+            self.store.commit_progress(progress).result()  # durable before caching
+            self._cache[device_id] = (progress.processed_seq, cal)
+            self.cycles += 1
+            self.metrics.inc("selfcal_worker_samples_total", samples)
+            for ev in events:
+                outcome = "published" if ev.get("published") else str(ev.get("reason") or "unknown")
+                self.metrics.inc("selfcal_refits_total", outcome=outcome)
+            return len(rows) >= self.max_batches
+
+    # ------------------------------------------------------------ feeding
+    def _prepare(self, batch: Batch, seq: int, feed: dict[str, Any]) -> np.ndarray:
+        """Device time -> fed time: a clock going backwards (reboot) adds a gap, never a reversal."""
+        offset = float(feed.get("t_offset_s", 0.0))
+        last = feed.get("last_t_s")
+        t = batch.t_s + offset
+        if last is not None and t[0] < last:
+            offset += (last - t[0]) + self.time_reset_gap_s
+            t = batch.t_s + offset
+            feed["clock_resets"] = int(feed.get("clock_resets", 0)) + 1
+            self.metrics.inc("selfcal_clock_resets_total")
+        feed["t_offset_s"] = offset
+        return t
+
+    def _account(self, batch: Batch, t: np.ndarray, seq: int, feed: dict[str, Any]) -> None:
+        feed["last_t_s"] = float(t[-1])
+        feed.setdefault("first_t_s", float(t[0]))
+        feed.setdefault("first_seq", int(seq))
+        feed["last_seq"] = int(seq)
+        feed["samples"] = int(feed.get("samples", 0)) + batch.n
+        if batch.temp_c is not None:
+            lo, hi = float(batch.temp_c.min()), float(batch.temp_c.max())
+            feed["temp_min_c"] = min(lo, feed.get("temp_min_c", lo))
+            feed["temp_max_c"] = max(hi, feed.get("temp_max_c", hi))
+
+    def _feed(self, cal: Calibrator, batches: list[tuple[int, Batch]], feed: dict[str, Any], rec) -> tuple[list, int]:
+        """Feed runs of consecutive batches with the same columns in one call each."""
+        events: list[dict[str, Any]] = []
+        samples = 0
+        run: list[tuple[np.ndarray, Batch]] = []
+
+        def shape(b: Batch) -> tuple[bool, int]:
+            return (b.temp_c is not None, 0 if b.pressure_kpa is None else b.pressure_kpa.shape[1])
+
+        def flush() -> None:
+            if not run:
+                return
+            t = np.concatenate([r[0] for r in run])
+            acc = np.concatenate([r[1].acc_g for r in run])
+            temp = None if run[0][1].temp_c is None else np.concatenate([r[1].temp_c for r in run])
+            pres = None if run[0][1].pressure_kpa is None else np.concatenate([r[1].pressure_kpa for r in run])
+            out = cal.feed_samples(t, acc, temp_c=temp, pressure_kpa=pres)
+            events.extend(self._stamp(out, feed))
+            run.clear()
+
+        for seq, batch in batches:
+            if run and shape(run[-1][1]) != shape(batch):
+                flush()
+            t = self._prepare(batch, seq, feed)
+            self._account(batch, t, seq, feed)
+            run.append((t, batch))
+            samples += batch.n
+        flush()
+        return events, samples
+
+    def _stamp(self, events: list[dict[str, Any]] | None, feed: dict[str, Any]) -> list[dict[str, Any]]:
+        """Attach the feed bookkeeping at the time of each refit (for provenance)."""
+        out = []
+        for ev in events or []:
+            ev = dict(ev)
+            ev["_feed"] = {k: feed.get(k) for k in ("first_t_s", "first_seq", "last_seq", "samples", "temp_min_c", "temp_max_c")}
+            out.append(ev)
+        return out
+
+    def _feed_isolating(self, cal: Calibrator, batches, feed, rec) -> tuple[list, int, Calibrator]:
+        """Slow path: feed one batch at a time; a batch the calibrator refuses is skipped."""
+        events: list[dict[str, Any]] = []
+        samples = 0
+        for seq, batch in batches:
+            snapshot, feed_before = cal.to_json(), dict(feed)
+            try:
+                ev, n = self._feed(cal, [(seq, batch)], feed, rec)
+            except Exception as exc:
+                cal = self.factory.restore(snapshot)
+                feed.clear()
+                feed.update(feed_before)
+                skipped = list(feed.get("skipped", []))[-19:]
+                skipped.append({"seq": int(seq), "error": f"{type(exc).__name__}: {exc}"[:300]})
+                feed["skipped"] = skipped
+                self.metrics.inc("selfcal_worker_skipped_batches_total")
+                continue
+            events.extend(ev)
+            samples += n
+        return events, samples, cal
+
+    def _versions(self, cal: Calibrator, events: list[dict[str, Any]], feed: dict[str, Any]) -> list[NewVersion]:
+        published = [ev for ev in events if ev.get("published")]
+        out = []
+        for i, ev in enumerate(published):
+            calib = ev.get("calibration")
+            if calib is None and i == len(published) - 1:
+                calib = cal.calibration()
+            if calib is None:
+                continue
+            calib = jsonable(calib)
+            calibrator_version = calib.pop("version", None)  # the service numbers versions
+            status = calib.get("status")
+            if status not in ("provisional", "calibrated"):
+                status = str(cal.status) if i == len(published) - 1 else "provisional"
+                if status == "uncalibrated":
+                    status = "provisional"
+            f = ev.get("_feed", {})
+            prov: dict[str, Any] = {
+                "n_poses": calib.get("n_poses"),
+                "coverage": calib.get("coverage"),
+                "temp_range_c": (
+                    [f["temp_min_c"], f["temp_max_c"]] if f.get("temp_min_c") is not None else None
+                ),
+                "time_span_s": [f.get("first_t_s"), jsonable(ev.get("t_s"))],
+                "seq_range": [f.get("first_seq"), f.get("last_seq")],
+                "samples": f.get("samples"),
+                "refit": {k: jsonable(v) for k, v in ev.items() if k not in ("calibration", "_feed")},
+            }
+            if isinstance(calib.get("provenance"), dict):
+                prov["poses"] = calib["provenance"]
+                prov["coverage"] = prov["coverage"] or calib["provenance"].get("cube_coverage")
+            prov["calibrator_version"] = calibrator_version
+            out.append(NewVersion(status=status, source="refit", calibration=calib, provenance=jsonable(prov)))
+        return out
+
+    # ------------------------------------------------------------ admin
+    def publish_admin(
+        self, device_id: str, version: NewVersion, seed: dict[str, Any] | None = None, timeout_s: float = 30.0
+    ) -> int:
+        """Seed/rollback: append a served version under the device lock (no refit races).
+
+        ``seed`` (``{"params", "std", "matrix", "offset"}``) is installed in the
+        calibrator with ``seed_calibration`` when the calibrator has it, so later refits
+        use it as their prior; the calibrator state and the version are written in one
+        transaction. A factory seed is then served as the calibrator describes it.
+        """
+        with self.device_lock(device_id):
+            rec = self.store.load_device(device_id)
+            expected = rec.processed_seq if rec else None
+            cal: Calibrator | None = None
+            if seed is not None and hasattr(self.factory.cls, "seed_calibration"):
+                cal = self._calibrator(rec) if rec else self.factory.create()
+                params = seed.get("params")
+                if not params:
+                    theta = cal.model.from_linear(np.asarray(seed["matrix"]), np.asarray(seed["offset"]))
+                    params = cal.model.to_dict(theta)
+                std = {k: v for k, v in (seed.get("std") or {}).items() if v is not None}
+                t_s = float((rec.feed_state.get("last_t_s") if rec else None) or 0.0)
+                cal.seed_calibration(params, std or None, t_s=t_s)
+                if version.source == "factory":
+                    calib = jsonable(cal.calibration())
+                    calib.pop("version", None)
+                    calib["source"] = "factory"
+                    status = str(cal.status) if cal.status != "uncalibrated" else "provisional"
+                    version = NewVersion(status, version.source, calib, version.provenance)
+            progress = Progress(
+                device_id=device_id,
+                expected_processed_seq=expected,
+                processed_seq=expected,
+                samples_added=0,
+                calibrator_state=cal.to_json() if cal is not None else (rec.calibrator_state if rec else None),
+                calibrator_status=str(cal.status) if cal is not None else (rec.calibrator_status if rec else None),
+                last_refit=rec.last_refit if rec else None,
+                feed_state=rec.feed_state if rec else {},
+                new_versions=[version],
+            )
+            numbers = self.store.commit_progress(progress).result(timeout=timeout_s)
+            if cal is not None:
+                self._cache[device_id] = (expected, cal)
+            return numbers[-1]

@@ -1,0 +1,145 @@
+"""Test helpers: start/kill a ``selfcal serve`` subprocess, make sample batches."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent.parent
+
+KEYS = {
+    "ingest": "ingest-key-0001",
+    "read": "read-key-0001",
+    "admin": "admin-key-0001",
+    "all": "all-scopes-key-01",
+}
+KEY_SPEC = ",".join(
+    [
+        f"{KEYS['ingest']}=ingest",
+        f"{KEYS['read']}=read",
+        f"{KEYS['admin']}=admin",
+        f"{KEYS['all']}=ingest+read+admin",
+    ]
+)
+
+
+def auth(scope: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {KEYS[scope]}"}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServerProcess:
+    """``python -m selfcal.cli serve --db DB --port P`` with a given calibrator."""
+
+    def __init__(self, db: Path, tmp: Path, calibrator: str | None = None, extra_config: str = "", env: dict | None = None):
+        self.db = Path(db)
+        self.tmp = Path(tmp)
+        self.calibrator = calibrator
+        self.config = self.tmp / "test.toml"
+        self.config.write_text(
+            "[service]\nmax_body_bytes = 262144\nmax_batch_samples = 2000\n\n"
+            "[fake]\npublish_after_samples = 200\n" + extra_config
+        )
+        self.env = dict(env or {})
+        self.port = 0
+        self.proc: subprocess.Popen | None = None
+        self.log = self.tmp / "server.log"
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def start(self, timeout_s: float = 30.0) -> None:
+        self.port = free_port()
+        env = dict(os.environ)
+        env["SELFCAL_API_KEYS"] = KEY_SPEC
+        env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(REPO), env.get("PYTHONPATH", "")])
+        if self.calibrator:
+            env["SELFCAL_CALIBRATOR"] = self.calibrator
+        env.update(self.env)
+        cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", str(self.db), "--port", str(self.port),
+               "--config", str(self.config), "--log-level", "warning"]
+        self._logfh = open(self.log, "ab")
+        self.proc = subprocess.Popen(cmd, env=env, stdout=self._logfh, stderr=subprocess.STDOUT, cwd=str(self.tmp))
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited with {self.proc.returncode}: {self.log.read_text()[-2000:]}")
+            try:
+                if httpx.get(self.url + "/healthz", timeout=1.0).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.05)
+        self.kill9()
+        raise RuntimeError(f"server did not come up: {self.log.read_text()[-2000:]}")
+
+    def kill9(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(timeout=10)
+        self.proc = None
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.kill9()
+        self.proc = None
+
+    def client(self, scope: str = "all", timeout_s: float = 10.0) -> httpx.Client:
+        return httpx.Client(base_url=self.url, headers=auth(scope), timeout=timeout_s)
+
+    def wait_processed(self, device_id: str, seq: int, timeout_s: float = 60.0) -> dict:
+        """Poll GET calibration until the worker has processed up to ``seq``."""
+        with self.client("read") as c:
+            deadline = time.monotonic() + timeout_s
+            body = None
+            while time.monotonic() < deadline:
+                r = c.get(f"/devices/{device_id}/calibration")
+                if r.status_code == 200:
+                    body = r.json()
+                    if body["processed_seq"] is not None and body["processed_seq"] >= seq:
+                        return body
+                time.sleep(0.05)
+        raise AssertionError(f"{device_id}: not processed up to seq {seq} in {timeout_s} s; last {body}")
+
+
+def batch_json(seq: int, n: int = 20, t0_s: float | None = None, rate_hz: float = 20.0, temp: bool = False,
+               pressure_channels: int = 0, rng: np.random.Generator | None = None) -> dict:
+    """A plausible batch: device lying flat, 20 Hz, times continuing from seq."""
+    rng = rng or np.random.default_rng(seq)
+    t0 = seq * n / rate_hz if t0_s is None else t0_s
+    t = t0 + np.arange(n) / rate_hz
+    body = {
+        "seq": seq,
+        "t_s": t.round(6).tolist(),
+        "ax_g": (0.01 + 0.002 * rng.standard_normal(n)).tolist(),
+        "ay_g": (-0.02 + 0.002 * rng.standard_normal(n)).tolist(),
+        "az_g": (1.0 + 0.002 * rng.standard_normal(n)).tolist(),
+    }
+    if temp:
+        body["temp_c"] = (25.0 + 0.1 * rng.standard_normal(n)).tolist()
+    if pressure_channels:
+        body["pressure_kpa"] = (20.0 + rng.random((n, pressure_channels))).tolist()
+    return body
+
+
+def t_ms_sum(body: dict) -> int:
+    return int(np.round(np.asarray(body["t_s"]) * 1000.0).astype(np.int64).sum())

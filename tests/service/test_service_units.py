@@ -1,0 +1,129 @@
+"""In-process unit tests: settings precedence, API-key parsing, binary codec, batch checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from selfcal.errors import InputError
+from service.auth import AuthError, KeyRing, parse_api_keys
+from service.schemas import Batch, FieldError, check_batch, decode_binary
+from service.settings import load_settings
+from service.worker import jsonable
+
+
+def test_settings_precedence_defaults_config_env_flags():
+    s = load_settings({}, environ={})
+    assert s.port == 8000 and s.sqlite_synchronous == "FULL"
+    s = load_settings({"port": 9000, "max_batch_samples": 50}, environ={})
+    assert s.port == 9000 and s.max_batch_samples == 50
+    s = load_settings({"port": 9000}, environ={"SELFCAL_PORT": "9100"})
+    assert s.port == 9100
+    s = load_settings({"port": 9000}, overrides={"port": 9200, "host": None}, environ={"SELFCAL_PORT": "9100"})
+    assert s.port == 9200 and s.host == "127.0.0.1"
+
+
+def test_settings_errors_name_the_key():
+    with pytest.raises(InputError, match=r"\[service\]\.colour"):
+        load_settings({"colour": "red"}, environ={})
+    with pytest.raises(InputError, match="sqlite_synchronous"):
+        load_settings({}, environ={"SELFCAL_SQLITE_SYNCHRONOUS": "OFF"})
+    with pytest.raises(InputError, match="api_keys"):
+        load_settings({}, environ={"SELFCAL_API_KEYS": "short=read"})
+
+
+def test_settings_repr_hides_keys():
+    s = load_settings({}, environ={"SELFCAL_API_KEYS": "verysecretkey=read"})
+    assert "verysecretkey" not in repr(s)
+
+
+@pytest.mark.parametrize(
+    "spec,match",
+    [
+        ("k", "entry #1"),
+        ("longenoughkey=", "scopes"),
+        ("longenoughkey=read+write", "scopes"),
+        ("goodkey123=read,=admin", "entry #2"),
+    ],
+)
+def test_bad_key_specs(spec, match):
+    with pytest.raises(ValueError, match=match):
+        parse_api_keys(spec)
+
+
+def test_keyring_scopes():
+    ring = KeyRing(" aaaaaaaa1=ingest , bbbbbbbb2=read+admin ,")
+    assert len(ring) == 2
+    ring.check("Bearer aaaaaaaa1", "ingest")
+    ring.check("bearer bbbbbbbb2", "admin")
+    for header, scope, status in [
+        (None, "read", 401),
+        ("Bearer", "read", 401),
+        ("Token aaaaaaaa1", "ingest", 401),
+        ("Bearer aaaaaaaa", "ingest", 401),
+        ("Bearer aaaaaaaa1", "read", 403),
+    ]:
+        with pytest.raises(AuthError) as err:
+            ring.check(header, scope)
+        assert err.value.status == status
+        assert "aaaaaaaa1" not in err.value.message
+
+
+def _batch(n=30, temp=True, k=4, seed=0) -> Batch:
+    rng = np.random.default_rng(seed)
+    return Batch(
+        seq=12345678901,
+        t_s=np.cumsum(rng.uniform(0.0, 0.1, n)),
+        acc_g=rng.uniform(-2, 2, (n, 3)),
+        temp_c=rng.uniform(0, 40, n) if temp else None,
+        pressure_kpa=rng.uniform(0, 300, (n, k)) if k else None,
+    )
+
+
+@pytest.mark.parametrize("temp,k", [(True, 4), (False, 0), (True, 0), (False, 16)])
+def test_binary_round_trip_exact(temp, k):
+    b = _batch(temp=temp, k=k)
+    raw = b.to_bytes()
+    assert len(raw) == 20 + 8 * b.n * (4 + int(temp) + k)
+    d = decode_binary(raw)
+    assert d.seq == b.seq
+    np.testing.assert_array_equal(d.t_s, b.t_s)
+    np.testing.assert_array_equal(d.acc_g, b.acc_g)
+    for x, y in ((d.temp_c, b.temp_c), (d.pressure_kpa, b.pressure_kpa)):
+        assert (x is None) == (y is None)
+        if x is not None:
+            np.testing.assert_array_equal(x, y)
+    assert d.to_bytes() == raw
+
+
+@pytest.mark.parametrize(
+    "change,field",
+    [
+        (lambda b: b.t_s.__setitem__(3, b.t_s[2] - 1e-3), "t_s[3]"),
+        (lambda b: b.t_s.__setitem__(0, np.inf), "t_s[0]"),
+        (lambda b: b.acc_g.__setitem__((5, 1), 16.01), "ay_g[5]"),
+        (lambda b: b.acc_g.__setitem__((6, 2), np.nan), "az_g[6]"),
+        (lambda b: b.temp_c.__setitem__(7, -40.5), "temp_c[7]"),
+        (lambda b: b.pressure_kpa.__setitem__((8, 3), 2000.5), "pressure_kpa[8][3]"),
+        (lambda b: b.pressure_kpa.__setitem__((9, 0), -0.1), "pressure_kpa[9][0]"),
+    ],
+)
+def test_check_batch_names_first_bad_value(change, field):
+    b = _batch()
+    check_batch(b, max_samples=100, max_pressure_channels=16)  # valid before the change
+    change(b)
+    with pytest.raises(FieldError) as err:
+        check_batch(b, max_samples=100, max_pressure_channels=16)
+    assert err.value.field == field
+
+
+def test_check_batch_limits():
+    with pytest.raises(FieldError, match="limit of 10"):
+        check_batch(_batch(n=11), max_samples=10, max_pressure_channels=16)
+    with pytest.raises(FieldError, match="channels"):
+        check_batch(_batch(k=5), max_samples=100, max_pressure_channels=4)
+
+
+def test_jsonable_makes_plain_json():
+    out = jsonable({"a": np.float64(np.nan), "b": np.arange(3), "c": (np.int32(2), np.bool_(True)), 4: np.inf})
+    assert out == {"a": None, "b": [0, 1, 2], "c": [2, True], "4": None}
