@@ -1,0 +1,111 @@
+"""SQLite spool (persisted batch seq, order) and the HTTP forwarder (retry, backoff, reject)."""
+
+from __future__ import annotations
+
+import json
+
+from gw_fake_service import FakeService
+from gw_helpers import run
+
+from selfcal.gateway.forwarder import Forwarder
+from selfcal.gateway.spool import Spool
+
+
+def _body(seq: int, n: int = 3) -> bytes:
+    return json.dumps({"seq": seq, "t_s": [0.0] * n, "ax_g": [0.0] * n, "ay_g": [0.0] * n, "az_g": [1.0] * n}).encode()
+
+
+def test_batch_seq_and_unwrap_state_survive_reopening(tmp_path):
+    path = tmp_path / "spool.db"
+    spool = Spool(path)
+    assert [spool.put_batch("a", 3, _body, 9, 0) for _ in range(3)] == [0, 1, 2]
+    assert spool.put_batch("b", 3, _body, 99, 7) == 0
+    spool.close()
+    spool = Spool(path)
+    state = spool.device_state("a")
+    assert (state.next_batch_seq, state.last_count, state.count_offset) == (3, 9, 0)
+    assert spool.device_state("b").count_offset == 7
+    assert spool.put_batch("a", 3, _body, 12, 0) == 3
+    # the head of each device is its oldest batch; bodies carry their own seq
+    heads = {b.device_id: b for b in spool.heads()}
+    assert heads["a"].seq == 0 and json.loads(heads["a"].body)["seq"] == 0
+    spool.ack(heads["a"])
+    assert {b.device_id: b.seq for b in spool.heads()} == {"a": 1, "b": 0}
+    assert spool.depth() == {"a": (3, 9), "b": (1, 3)}
+
+
+def test_forwarder_retries_with_backoff_then_delivers_in_order(tmp_path):
+    service = FakeService(up=False)
+    spool = Spool(tmp_path / "s.db")
+    for _ in range(5):
+        spool.put_batch("dev-1", 3, _body, None, 0)
+    acks = []
+
+    async def body():
+        fwd = Forwarder(
+            "http://svc", service.key, spool, transport=service.transport(),
+            backoff_initial_s=0.01, backoff_max_s=0.05,
+            on_ack=lambda d, n, dup: acks.append((d, n, dup)),
+        )
+        assert not await fwd.flush(0.2)
+        assert fwd.service_up is False and "503" in fwd.last_error
+        assert fwd.retries >= 2
+        service.up = True
+        assert await fwd.flush(2.0)
+        await fwd.stop()
+
+    run(body())
+    assert service.order["dev-1"] == [0, 1, 2, 3, 4]
+    assert acks == [("dev-1", 3, False)] * 5
+    assert spool.heads() == []
+
+
+def test_lost_acknowledgement_is_resent_and_deduplicated(tmp_path):
+    service = FakeService(fail_after_commit=1)  # commits seq 0 but answers 500
+    spool = Spool(tmp_path / "s.db")
+    spool.put_batch("dev-1", 3, _body, None, 0)
+    spool.put_batch("dev-1", 3, _body, None, 0)
+
+    async def body():
+        fwd = Forwarder("http://svc", service.key, spool, transport=service.transport(), backoff_initial_s=0.01)
+        assert await fwd.flush(2.0)
+        await fwd.stop()
+        return fwd
+
+    fwd = run(body())
+    assert service.order["dev-1"] == [0, 1]
+    assert service.duplicates == 1 and fwd.duplicates == 1
+    assert service.n_samples("dev-1") == 6  # the resend was not counted twice
+
+
+def test_refused_batches_go_to_the_rejected_table_and_do_not_block(tmp_path):
+    service = FakeService()
+    spool = Spool(tmp_path / "s.db")
+    spool.put_batch("dev-1", 3, lambda seq: b'{"seq": %d}' % seq, None, 0)  # no t_s: 422
+    spool.put_batch("dev-1", 3, _body, None, 0)
+
+    async def body():
+        fwd = Forwarder("http://svc", service.key, spool, transport=service.transport())
+        assert await fwd.flush(2.0)
+        await fwd.stop()
+        return fwd
+
+    fwd = run(body())
+    assert fwd.rejected == 1 and spool.rejected_count() == 1
+    assert service.order["dev-1"] == [1]
+
+
+def test_wrong_key_keeps_batches_and_reports_401(tmp_path):
+    service = FakeService()
+    spool = Spool(tmp_path / "s.db")
+    spool.put_batch("dev-1", 3, _body, None, 0)
+
+    async def body():
+        fwd = Forwarder("http://svc", "wrong-key", spool, transport=service.transport(), backoff_initial_s=0.01)
+        assert not await fwd.flush(0.1)
+        await fwd.stop()
+        return fwd
+
+    fwd = run(body())
+    assert "HTTP 401" in fwd.last_error
+    assert len(spool.heads()) == 1 and spool.rejected_count() == 0
