@@ -180,6 +180,12 @@ class OnlineCalibrator:
         events = self._take_windows(windows)
         if self.new_since_refit > 0:
             events.append(self.refit())
+        # poses that only validated the last publication are training data now: absorb them
+        if self.current is not None and events and events[-1]["published"]:
+            pending = self.buffer.validated & ~self.buffer.absorbed
+            if pending.any():
+                self.new_since_refit = int(pending.sum())
+                events.append(self.refit())
         return events
 
     def _take_windows(self, w) -> list[dict]:
@@ -267,12 +273,12 @@ class OnlineCalibrator:
                 theta0 = self.initial_params_u if self.current is None else np.asarray(self.current["theta_u"])
                 fit = fit_poses(
                     self.model, self.buffer.pose_data(train), prior=datasheet_prior(self.model, self.fit_cfg),
-                    theta0_u=theta0, cfg=self.fit_cfg,
+                    theta0_u=theta0, cfg=self.fit_cfg, exhaustive=True,
                 )
         except InputError as exc:
             return self._refuse(t_now, "insufficient_coverage", str(exc), mode)
 
-        decision = self._guard(fit, held)
+        decision = self._guard(fit, held, first=mode != "sequential")
         if not decision.publish:
             return self._refuse(t_now, decision.reason, decision.message, mode, fit, decision)
         return self._publish(t_now, fit, used, mode, decision)
@@ -281,9 +287,9 @@ class OnlineCalibrator:
         """Held-out mask: every k-th pose id, not yet absorbed, once the buffer is large enough."""
         if len(self.buffer) < self.guard_cfg.heldout_min_poses:
             return np.zeros(len(self.buffer), dtype=bool)
-        return self.buffer.heldout(self.guard_cfg.heldout_every) & ~self.buffer.absorbed
+        return self.buffer.heldout(self.guard_cfg.heldout_every) & ~self.buffer.absorbed & ~self.buffer.validated
 
-    def _guard(self, fit: FitResult, held: np.ndarray) -> GuardDecision:
+    def _guard(self, fit: FitResult, held: np.ndarray, first: bool = True) -> GuardDecision:
         g = self.guard_cfg
         if not fit.success:
             return GuardDecision(False, "not_converged", f"LM did not converge: {fit.message}")
@@ -295,7 +301,7 @@ class OnlineCalibrator:
                 False, "implausible",
                 f"fit residual RMS {fit.residual_rms_mg:.2f} mg exceeds {g.max_residual_rms_mg} mg",
             )
-        if fit.n_determined_directions < g.min_determined:
+        if first and fit.n_determined_directions < g.min_determined:
             return GuardDecision(False, "insufficient_coverage", "the poses determine no parameter direction")
         cur_theta = np.asarray(self.current["theta_u"]) if self.current else self.model.nominal()
         ident = Normalizer()
@@ -333,7 +339,8 @@ class OnlineCalibrator:
 
     def _publish(self, t_now, fit: FitResult, used: np.ndarray, mode: str, decision: GuardDecision) -> dict:
         version = (self.current["version"] if self.current else 0) + 1
-        self.buffer.mark_absorbed(self.buffer.pose_id[used])
+        self.buffer.mark_absorbed(self.buffer.pose_id[used], t_now)
+        self.buffer.mark_validated(self.buffer.pose_id[self._heldout()])
         cal = fit.to_calibration(unit="g")
         det = self._cumulative_determined(fit.cov_u)
         names = self.model.param_names

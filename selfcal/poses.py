@@ -10,12 +10,18 @@ Policy (documented in the README):
   the newest observation of a direction wins, which tracks a drifting sensor. If the
   stored pose is recent (``pool_within_s``) and not yet absorbed into the published
   model, the two are *pooled* instead (n-weighted mean, pooled sd), so a long still
-  split into several windows counts as one pose with all its samples.
+  split into several windows counts as one pose with all its samples. A repeat of a
+  pose already absorbed less than ``refresh_s`` ago replaces it but is marked absorbed:
+  its information is already in the model, and what repeats share (systematic error)
+  does not average down. After ``refresh_s`` a repeat counts again, so slow drifts
+  are still tracked.
 * **Bound** — when the buffer holds ``max_poses``, the most redundant pose goes: of the
   closest pair (smallest gamma), the older one. Isolated poses (the rare shoe-on-its-
   side) are never the ones evicted while redundant ones remain: coverage is preserved.
 * **Held-out** — every pose gets a serial id; ids that are multiples of
-  ``guard.heldout_every`` are held out of fitting and used by the guard.
+  ``guard.heldout_every`` are held out of fitting and used by the guard. Once a
+  publication has been validated on them they are *validated* and become training
+  poses for the next refit, so no pose's information is lost.
 * **Absorbed** — a pose whose information is already in the published model's
   posterior is marked absorbed, so that a sequential update does not count it twice.
 * **Split** — the insole paper's axis-aligned poses (``O_cor``) and the rest
@@ -41,6 +47,10 @@ class PoseConfig(BaseModel):
     max_poses: int = Field(240, ge=8, description="buffer size bound")
     merge_angle_deg: float = Field(3.0, gt=0, description="poses closer than this (and merge_temp_c) are one pose, deg")
     merge_temp_c: float = Field(2.0, gt=0, description="temperature scale of the diversity distance, degC")
+    refresh_s: float = Field(
+        86400.0, ge=0,
+        description="a repeat of an absorbed pose within this time carries no new information (systematic errors do not average down), s",
+    )
     pool_within_s: float = Field(
         600.0, ge=0, description="a repeat of a pose not yet absorbed and this recent is pooled with it (n-weighted), s"
     )
@@ -53,7 +63,7 @@ class PoseConfig(BaseModel):
         return cls(**(section or {}))
 
 
-_FIELDS = ("mean", "sd", "count", "t_s", "temp_c", "pose_id", "absorbed")
+_FIELDS = ("mean", "sd", "count", "t_s", "temp_c", "pose_id", "absorbed", "validated", "absorbed_at")
 
 
 @dataclass
@@ -73,6 +83,8 @@ class PoseBuffer:
     temp_c: np.ndarray
     pose_id: np.ndarray
     absorbed: np.ndarray
+    validated: np.ndarray
+    absorbed_at: np.ndarray
     next_id: int = 1
     n_seen: int = 0
     n_replaced: int = 0
@@ -84,7 +96,7 @@ class PoseBuffer:
         return cls(
             config or PoseConfig(),
             np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0),
-            np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool),
+            np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool), np.zeros(0),
         )
 
     def __len__(self) -> int:
@@ -140,7 +152,7 @@ class PoseBuffer:
             if not np.all(np.isfinite(mean_g[i])) or np.linalg.norm(mean_g[i]) == 0:
                 continue
             self.n_seen += 1
-            row = (mean_g[i], sd_g[i], count[i], t_s[i], temp[i], self.next_id, False)
+            row = (mean_g[i], sd_g[i], count[i], t_s[i], temp[i], self.next_id, False, False, np.nan)
             self.next_id += 1
             gamma = self._gamma(mean_g[i], temp[i])
             if gamma.size and gamma.min() < 1.0:
@@ -149,8 +161,15 @@ class PoseBuffer:
                     self._pool(j, mean_g[i], sd_g[i], count[i], t_s[i], temp[i])
                     stats["replaced"] += 1
                     continue
+                absorbed_at = self.absorbed_at[j]
+                repeat_of_absorbed = self.absorbed[j] and abs(t_s[i] - absorbed_at) <= self.config.refresh_s
                 for name, value in zip(_FIELDS, row):
                     getattr(self, name)[j] = value
+                if repeat_of_absorbed:
+                    # same orientation, recently absorbed: keep the newest reading (for the
+                    # guard and the detector), but do not count its information again
+                    self.absorbed[j] = True
+                    self.absorbed_at[j] = absorbed_at
                 self.n_replaced += 1
                 stats["replaced"] += 1
                 continue
@@ -187,9 +206,15 @@ class PoseBuffer:
             setattr(self, name, getattr(self, name)[keep])
         self.n_evicted += 1
 
-    def mark_absorbed(self, pose_ids: np.ndarray) -> None:
-        """Mark poses as absorbed into the published model's posterior."""
-        self.absorbed |= np.isin(self.pose_id, pose_ids)
+    def mark_absorbed(self, pose_ids: np.ndarray, t_s: float = np.nan) -> None:
+        """Mark poses as absorbed into the published model's posterior (at time ``t_s``)."""
+        new = np.isin(self.pose_id, pose_ids) & ~self.absorbed
+        self.absorbed |= new
+        self.absorbed_at[new] = t_s
+
+    def mark_validated(self, pose_ids: np.ndarray) -> None:
+        """Mark held-out poses as used once by the guard: from now on they are training poses."""
+        self.validated |= np.isin(self.pose_id, pose_ids)
 
     # ------------------------------------------------------------------ views
     def pose_data(self, mask: np.ndarray | None = None) -> PoseData:
@@ -251,6 +276,8 @@ class PoseBuffer:
             "temp_c": [None if not np.isfinite(x) else float(x) for x in self.temp_c],
             "pose_id": self.pose_id.tolist(),
             "absorbed": self.absorbed.tolist(),
+            "validated": self.validated.tolist(),
+            "absorbed_at": [None if not np.isfinite(x) else float(x) for x in self.absorbed_at],
             "next_id": self.next_id,
             "n_seen": self.n_seen,
             "n_replaced": self.n_replaced,
@@ -268,5 +295,5 @@ class PoseBuffer:
             PoseConfig(**d["config"]),
             arr(d["mean"], (3,)), arr(d["sd"], (3,)), arr(d["count"]), arr(d["t_s"]), arr(d["temp_c"]),
             np.asarray(d["pose_id"], dtype=np.int64), np.asarray(d["absorbed"], dtype=bool),
-            int(d["next_id"]), int(d["n_seen"]), int(d["n_replaced"]), int(d["n_evicted"]),
+            np.asarray(d["validated"], dtype=bool), arr(d["absorbed_at"]), int(d["next_id"]), int(d["n_seen"]), int(d["n_replaced"]), int(d["n_evicted"]),
         )
