@@ -209,7 +209,7 @@ class OnlineCalibrator:
         if mean_g.shape[0] == 0:
             return []
         stats = self.buffer.add(mean_g, sd_g, n, t_s, temp_c)
-        self.new_since_refit += stats["added"] + stats["replaced"]
+        self.new_since_refit += stats["new_info"]
         self.t_last_s = max(self.t_last_s or -np.inf, float(np.max(t_s)))
         if self._due():
             return [self.refit()]

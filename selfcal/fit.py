@@ -75,8 +75,8 @@ class FitConfig(BaseModel):
     prior_drift_g_per_day: float = Field(2e-3, gt=0, description="prior sd of the offset drift, g/day")
     prior_nonlin_per_g: float = Field(0.01, gt=0, description="prior sd of the quadratic nonlinearity q, 1/g")
     determined_ratio: float = Field(
-        0.5, gt=0, lt=1,
-        description="a parameter is determined when the data shrink its prior sd by this factor",
+        0.3, gt=0, lt=1,
+        description="a parameter is determined when the data shrink its prior sd to this fraction (>= 91 % of its information from data)",
     )
     axis_tol_g: float = Field(
         0.12, gt=0, description="axis-aligned pose: one axis within this of +-1 g, others within it of 0"

@@ -103,20 +103,28 @@ class PoseBuffer:
         return self.mean.shape[0]
 
     # ------------------------------------------------------------------ distance
+    def _units(self) -> np.ndarray:
+        """Unit directions of the stored poses (m, 3), cached between calls."""
+        u = self.__dict__.get("_unit_cache")
+        if u is None or u.shape[0] != len(self):
+            u = self.mean / np.linalg.norm(self.mean, axis=1, keepdims=True)
+            self.__dict__["_unit_cache"] = u
+        return u
+
     def _gamma(self, mean: np.ndarray, temp_c: float) -> np.ndarray:
         """Diversity distance of one pose (3,) to every stored pose, (m,)."""
         if len(self) == 0:
             return np.zeros(0)
-        u = mean / np.linalg.norm(mean)
-        stored = self.mean / np.linalg.norm(self.mean, axis=1, keepdims=True)
-        ang = np.degrees(np.arccos(np.clip(stored @ u, -1.0, 1.0)))
+        u = mean / np.sqrt(mean @ mean)
+        ang = np.degrees(np.arccos(np.clip(self._units() @ u, -1.0, 1.0)))
         g2 = (ang / self.config.merge_angle_deg) ** 2
-        dt = np.abs(self.temp_c - temp_c)
-        g2 = g2 + np.where(np.isfinite(dt), (dt / self.config.merge_temp_c) ** 2, 0.0)
-        return np.sqrt(g2)
+        if np.isfinite(temp_c):
+            dt = (self.temp_c - temp_c) / self.config.merge_temp_c
+            g2 += np.where(np.isfinite(dt), dt * dt, 0.0)
+        return g2  # squared distance: compared with 1
 
     def _pairwise_gamma(self) -> np.ndarray:
-        stored = self.mean / np.linalg.norm(self.mean, axis=1, keepdims=True)
+        stored = self._units()
         ang = np.degrees(np.arccos(np.clip(stored @ stored.T, -1.0, 1.0)))
         dt = np.abs(self.temp_c[:, None] - self.temp_c[None, :])
         g2 = (ang / self.config.merge_angle_deg) ** 2 + np.where(
@@ -128,7 +136,7 @@ class PoseBuffer:
 
     # ------------------------------------------------------------------ updates
     def add(self, mean_g, sd_g, count, t_s, temp_c=None) -> dict[str, int]:
-        """Add still windows (one loop step per window; windows are few).
+        """Add still windows (one loop step per window, O(m) numpy work each).
 
         Parameters
         ----------
@@ -139,27 +147,30 @@ class PoseBuffer:
 
         Returns
         -------
-        dict with ``added``, ``replaced``, ``evicted`` counts.
+        dict with ``added``, ``replaced``, ``evicted`` counts and ``new_info``: the
+        windows that brought information not yet in the published model.
         """
         mean_g = np.atleast_2d(np.asarray(mean_g, dtype=float))
         k = mean_g.shape[0]
         sd_g = np.broadcast_to(np.asarray(sd_g, dtype=float), (k, 3)) if sd_g is not None else np.full((k, 3), np.nan)
-        count = np.broadcast_to(np.asarray(count, dtype=float), (k,))
-        t_s = np.broadcast_to(np.asarray(t_s, dtype=float), (k,))
-        temp = np.full(k, np.nan) if temp_c is None else np.broadcast_to(np.asarray(temp_c, dtype=float), (k,))
-        stats = {"added": 0, "replaced": 0, "evicted": 0}
+        count = np.broadcast_to(np.asarray(count, dtype=float), (k,)).tolist()
+        t_s = np.broadcast_to(np.asarray(t_s, dtype=float), (k,)).tolist()
+        temp = (np.full(k, np.nan) if temp_c is None else np.broadcast_to(np.asarray(temp_c, dtype=float), (k,))).tolist()
+        valid = np.all(np.isfinite(mean_g), axis=1) & (np.einsum("ij,ij->i", mean_g, mean_g) > 0)
+        stats = {"added": 0, "replaced": 0, "evicted": 0, "new_info": 0}
         for i in range(k):
-            if not np.all(np.isfinite(mean_g[i])) or np.linalg.norm(mean_g[i]) == 0:
+            if not valid[i]:
                 continue
             self.n_seen += 1
             row = (mean_g[i], sd_g[i], count[i], t_s[i], temp[i], self.next_id, False, False, np.nan)
             self.next_id += 1
-            gamma = self._gamma(mean_g[i], temp[i])
-            if gamma.size and gamma.min() < 1.0:
-                j = int(np.argmin(gamma))
+            gamma2 = self._gamma(mean_g[i], temp[i])
+            j = int(np.argmin(gamma2)) if gamma2.size else -1
+            if j >= 0 and gamma2[j] < 1.0:
                 if not self.absorbed[j] and abs(t_s[i] - self.t_s[j]) <= self.config.pool_within_s:
                     self._pool(j, mean_g[i], sd_g[i], count[i], t_s[i], temp[i])
                     stats["replaced"] += 1
+                    stats["new_info"] += 1
                     continue
                 absorbed_at = self.absorbed_at[j]
                 repeat_of_absorbed = self.absorbed[j] and abs(t_s[i] - absorbed_at) <= self.config.refresh_s
@@ -170,6 +181,9 @@ class PoseBuffer:
                     # guard and the detector), but do not count its information again
                     self.absorbed[j] = True
                     self.absorbed_at[j] = absorbed_at
+                else:
+                    stats["new_info"] += 1
+                self._units()[j] = mean_g[i] / np.sqrt(mean_g[i] @ mean_g[i])
                 self.n_replaced += 1
                 stats["replaced"] += 1
                 continue
@@ -177,6 +191,8 @@ class PoseBuffer:
                 arr = getattr(self, name)
                 setattr(self, name, np.concatenate([arr, np.asarray([value], dtype=arr.dtype).reshape((1,) + arr.shape[1:])]))
             stats["added"] += 1
+            stats["new_info"] += 1
+            self.__dict__.pop("_unit_cache", None)
             if len(self) > self.config.max_poses:
                 self._evict_one()
                 stats["evicted"] += 1
@@ -189,6 +205,7 @@ class PoseBuffer:
         m = (n1 * self.mean[j] + n2 * mean) / n
         var = (n1 * (self.sd[j] ** 2 + (self.mean[j] - m) ** 2) + n2 * (sd**2 + (mean - m) ** 2)) / n
         self.mean[j] = m
+        self._units()[j] = m / np.sqrt(m @ m)
         self.sd[j] = np.sqrt(var)
         self.count[j] = n
         self.t_s[j] = (n1 * self.t_s[j] + n2 * t_s) / n
@@ -204,6 +221,7 @@ class PoseBuffer:
         keep[drop] = False
         for name in _FIELDS:
             setattr(self, name, getattr(self, name)[keep])
+        self.__dict__.pop("_unit_cache", None)
         self.n_evicted += 1
 
     def mark_absorbed(self, pose_ids: np.ndarray, t_s: float = np.nan) -> None:
