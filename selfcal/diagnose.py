@@ -448,33 +448,14 @@ def _f(x) -> float | None:
 def diagnose_recording(rec, config: dict | None = None, base_model: str = "affine9",
                        keep_arrays: bool = False) -> tuple[dict, dict]:
     """Diagnose a Recording (samples: still windows first). Returns (report, poses used)."""
-    from selfcal.fit import guess_normalizer, sphere_normalizer
+    from selfcal.pipeline import recording_poses
 
-    if rec.kind == "samples":
-        from selfcal.pipeline import _detector_config, _rough_counts_normalizer, _windows_of
-
-        rough = _rough_counts_normalizer(rec.acc) if rec.unit == "counts" else guess_normalizer(rec.unit)
-        w = _windows_of(rough.to_u(rec.acc), rec, _detector_config(config or {}, rec.rate_hz(), rec.unit == "counts"))
-        if len(w) == 0:
-            raise InputError(f"{rec.path}: no still window found")
-        mean = w.mean_g * rough.scale + np.asarray(rough.center)
-        sd = w.sd_g * rough.scale
-        count = w.n.astype(float)
-        t_s = 0.5 * (w.t_start_s + w.t_end_s)
-        temp = w.temp_c if np.any(np.isfinite(w.temp_c)) else None
-    else:
-        mean, sd, t_s, temp = rec.acc, rec.sd, rec.t_s, rec.temp_c
-        if rec.n is not None:
-            count = rec.n.astype(float)
-        else:
-            rate = float(rec.meta.get("rate_hz", 50.0))
-            count = np.maximum(1.0, (rec.duration_s if rec.duration_s is not None else np.ones(len(rec))) * rate)
-    normalizer = sphere_normalizer(mean) if rec.unit == "counts" else guess_normalizer(rec.unit)
+    poses, normalizer, _ = recording_poses(rec, config)
+    mean, sd, count, t_s, temp = poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"]
     report = diagnose_poses(mean, sd, count, t_s, temp, normalizer, config, base_model, keep_arrays)
     report["recording"] = rec.path
     report["unit"] = rec.unit
-    poses = {"mean": mean, "sd": sd, "count": count, "t_s": t_s, "temp_c": temp, "normalizer": normalizer}
-    return report, poses
+    return report, dict(poses, normalizer=normalizer)
 
 
 def pose_sigma_mg(mean_u, sd_u, count, cfg: FitConfig | None = None) -> np.ndarray:

@@ -75,6 +75,44 @@ def _windows_of(rec_u_acc, rec: Recording, cfg: dict):
     return StillWindows.concat(parts)
 
 
+def recording_poses(rec: Recording, config: dict | None = None) -> tuple[dict, Normalizer, list[str]]:
+    """Still poses of a recording in its own unit, and the normaliser to ~g.
+
+    Samples tables: the still windows found by the detector (raw counts are first
+    normalised roughly, then by a sphere fit of the windows). Poses tables: the rows.
+
+    Returns
+    -------
+    poses : dict with ``mean``, ``sd`` (n, 3) raw unit; ``count``, ``t_s`` (window
+        centre, s), ``temp_c`` (n,) or None
+    normalizer : Normalizer
+    notes : list of str
+    """
+    notes: list[str] = []
+    if rec.kind == "samples":
+        rough = _rough_counts_normalizer(rec.acc) if rec.unit == "counts" else guess_normalizer(rec.unit)
+        w = _windows_of(rough.to_u(rec.acc), rec, _detector_config(config or {}, rec.rate_hz(), rec.unit == "counts"))
+        if len(w) == 0:
+            raise InputError(f"{rec.path}: no still window found")
+        poses = {
+            "mean": w.mean_g * rough.scale + np.asarray(rough.center),
+            "sd": w.sd_g * rough.scale,
+            "count": w.n.astype(float),
+            "t_s": 0.5 * (w.t_start_s + w.t_end_s),
+            "temp_c": w.temp_c if np.any(np.isfinite(w.temp_c)) else None,
+        }
+    else:
+        if rec.n is not None:
+            count = rec.n.astype(float)
+        else:
+            rate = float(rec.meta.get("rate_hz", 50.0))
+            count = np.maximum(1.0, (rec.duration_s if rec.duration_s is not None else np.ones(len(rec))) * rate)
+            notes.append(f"poses table without n: samples per window assumed = duration_s x {rate:g} Hz")
+        poses = {"mean": rec.acc, "sd": rec.sd, "count": count, "t_s": rec.t_s, "temp_c": rec.temp_c}
+    normalizer = sphere_normalizer(poses["mean"]) if rec.unit == "counts" else guess_normalizer(rec.unit)
+    return poses, normalizer, notes
+
+
 def calibrate_recording(
     rec: Recording,
     model: str = "affine9",
@@ -141,19 +179,10 @@ def calibrate_recording(
         if bar:
             bar.close()
     else:  # poses table
-        if rec.unit == "counts":
-            normalizer = sphere_normalizer(rec.acc)
-        else:
-            normalizer = guess_normalizer(rec.unit)
+        poses, normalizer, notes = recording_poses(rec, config)
         cal = OnlineCalibrator(config, model)
-        if rec.n is not None:
-            count = rec.n.astype(float)
-        else:
-            rate = float(rec.meta.get("rate_hz", 50.0))
-            count = np.maximum(1.0, (rec.duration_s if rec.duration_s is not None else np.ones(len(rec))) * rate)
-            notes.append(f"poses table without n: samples per window assumed = duration_s x {rate:g} Hz")
-        sd_u = None if rec.sd is None else rec.sd / normalizer.scale
-        events = cal.feed_poses(normalizer.to_u(rec.acc), sd_u, count, rec.t_s, rec.temp_c)
+        sd_u = None if poses["sd"] is None else poses["sd"] / normalizer.scale
+        events = cal.feed_poses(normalizer.to_u(poses["mean"]), sd_u, poses["count"], poses["t_s"], poses["temp_c"])
         events += cal.flush()
         n_windows = len(rec)
     return CalibrationRun(
