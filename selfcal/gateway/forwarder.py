@@ -128,11 +128,13 @@ class Forwarder:
     async def stop(self) -> None:
         """Stop the drain loop and close the HTTP client (the spool is left as is)."""
         if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
+            # cancel until the task is really done: a cancel can be absorbed by a
+            # coroutine that was about to finish a wait
+            while not self._task.done():
+                self._task.cancel()
+                await asyncio.wait({self._task}, timeout=0.5)
+            if not self._task.cancelled() and self._task.exception() is not None:
+                log.warning("forwarder loop ended with %r", self._task.exception())
             self._task = None
         await self._client.aclose()
 
@@ -167,8 +169,12 @@ class Forwarder:
             if wait > 0:
                 await asyncio.sleep(wait)
             else:
+                # asyncio.timeout, not wait_for: on Python 3.11 wait_for can swallow a
+                # cancel that races with the event being set (CPython gh-86296), and
+                # stop() would then wait forever
                 try:
-                    await asyncio.wait_for(self._wake.wait(), timeout=1.0)
+                    async with asyncio.timeout(1.0):
+                        await self._wake.wait()
                 except TimeoutError:
                     pass
             self._wake.clear()

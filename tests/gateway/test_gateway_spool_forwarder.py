@@ -109,3 +109,22 @@ def test_wrong_key_keeps_batches_and_reports_401(tmp_path):
     fwd = run(body())
     assert "HTTP 401" in fwd.last_error
     assert len(spool.heads()) == 1 and spool.rejected_count() == 0
+
+
+def test_stop_returns_even_when_woken_in_the_same_iteration(tmp_path):
+    """Regression: on Python 3.11 `asyncio.wait_for` could swallow the cancel of stop()
+    when the wake event was set in the same loop iteration; stop() then never returned."""
+    import asyncio
+
+    service = FakeService()
+    spool = Spool(tmp_path / "s.db")
+
+    async def body():
+        for _ in range(200):
+            fwd = Forwarder("http://svc", service.key, spool, transport=service.transport())
+            fwd.start()
+            await asyncio.sleep(0)
+            fwd.wake()
+            await asyncio.wait_for(fwd.stop(), timeout=5.0)
+
+    run(body(), timeout_s=60)
