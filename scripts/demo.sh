@@ -5,4 +5,4 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[all]'
-exec .venv/bin/selfcal calibrate ../shared/data/imutk-xsens-multipose/samples.csv "$@"
+exec .venv/bin/selfcal demo "$@"

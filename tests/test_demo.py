@@ -1,0 +1,111 @@
+"""``selfcal demo``: the truth metric, the insole's sample source, and a scaled-down run
+(2 insoles, 1 h of wear each, the service killed with SIGKILL halfway and restarted)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from selfcal.config import load_config
+from selfcal.demo import (
+    SAMPLES_PER_PACKET,
+    SimSource,
+    demo_sim_config,
+    make_simulation,
+    norm_rms_mg,
+    sphere_norm_rms_mg,
+)
+from selfcal.models import ErrorModel
+
+
+def _sim(seed: int = 0, hours: float = 0.5):
+    return make_simulation(demo_sim_config(load_config(None)), seed, hours)
+
+
+def test_sphere_metric_is_zero_for_the_true_calibration_and_not_for_none():
+    truth = _sim().truth.sensor
+    model = ErrorModel("affine9")
+    matrix, offset = model.linear(model.from_dict(truth.params()))  # canonical R, true offset
+    assert sphere_norm_rms_mg(truth, matrix, offset) < 1e-6
+    # the mounting rotation is invisible to norms: the full true matrix is as good
+    assert sphere_norm_rms_mg(truth, truth.matrix, truth.offset) < 1e-6
+    raw = sphere_norm_rms_mg(truth, np.eye(3), np.zeros(3))
+    assert 5.0 < raw < 200.0
+    # the same metric on a subset of directions (what the worn-pose figure uses)
+    flat = np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 0.995]])
+    flat /= np.linalg.norm(flat, axis=1, keepdims=True)
+    assert norm_rms_mg(truth, flat, matrix, offset) < 1e-6
+
+
+class _Insole:
+    subscribed = False
+
+
+def test_sim_source_waits_for_a_subscriber_then_streams_whole_packets_from_shoe_on():
+    sim = _sim(seed=3, hours=0.2)
+    src = SimSource(sim, hours=0.2, piece=100)
+    assert src.planned % SAMPLES_PER_PACKET == 0 and src.planned <= 0.2 * 3600 * 20
+    on = np.flatnonzero(sim.schedule.on_foot)[0]
+    assert src.t_start_s == pytest.approx(sim.schedule.start[on] / 20.0 - 300.0)
+    # nobody listening: one placeholder sample per call, the simulation does not advance
+    assert src()[1].shape == (1, 3) and src() is not None and src.emitted == 0
+    src.insole = _Insole()
+    assert src()[1].shape == (1, 3) and src.emitted == 0
+    src.insole.subscribed = True
+    chunks = []
+    while (c := src()) is not None:
+        chunks.append(c)
+    t = np.concatenate([c[0] for c in chunks])
+    assert len(t) == src.planned == src.emitted and src.done
+    assert t[0] == pytest.approx(src.t_start_s, abs=0.05)
+    assert np.allclose(np.diff(t), 0.05)  # uniformly sampled, no radio loss in the demo wearer
+    assert all(c[1].shape[1] == 3 and c[2].shape[1] == 4 and len(c[3]) == len(c[0]) for c in chunks)
+    # a link loss later would not hold samples back: no more placeholders once started
+    src.insole.subscribed = False
+    assert src() is None
+    dirs = src.worn_directions()
+    assert len(dirs) > 0 and np.allclose(np.linalg.norm(dirs, axis=1), 1.0)
+
+
+@pytest.mark.service
+@pytest.mark.ble
+def test_demo_two_insoles_kill_and_restart_lose_nothing(tmp_path, monkeypatch, capsys):
+    import selfcal.demo as demo_mod
+    from selfcal.cli import main
+
+    workdirs: list[Path] = []
+
+    def mkdtemp(prefix: str = "") -> str:
+        d = tmp_path / f"{prefix}{len(workdirs)}"
+        d.mkdir()
+        workdirs.append(d)
+        return str(d)
+
+    monkeypatch.setattr(demo_mod.tempfile, "mkdtemp", mkdtemp)
+    t0 = time.monotonic()
+    rc = main(["demo", "--devices", "2", "--hours", "1", "--kill-service-at", "0.5", "--json", "--no-progress"])
+    wall = time.monotonic() - t0
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0
+    assert wall < 60
+    assert set(out) >= {"devices", "lost_samples", "service_restarts"}
+    assert out["service_restarts"] == 1 and len(out["service_kills"]) == 1
+    assert out["service_kills"][0]["at_fraction"] == pytest.approx(0.5, abs=0.05)
+    assert out["lost_samples"] == 0
+    assert [d["device_id"] for d in out["devices"]] == ["insole-01", "insole-02"]
+    for d in out["devices"]:
+        assert set(d) >= {"device_id", "samples_sent", "samples_stored", "status", "sphere_norm_rms_mg"}
+        assert d["samples_sent"] == d["samples_stored"] > 0.99 * 3600 * 20
+        assert d["status"] in ("uncalibrated", "provisional", "calibrated")
+        if d["status"] != "uncalibrated":
+            assert d["sphere_norm_rms_mg"] is not None and d["sphere_norm_rms_mg"] >= 0
+    gw = out["gateway"]
+    assert gw["gaps"] == 0 and gw["rejected_batches"] == 0 and gw["malformed_packets"] == 0
+    assert gw["samples_forwarded"] == sum(d["samples_sent"] for d in out["devices"])
+    assert gw["retries"] > 0  # the outage was seen by the gateway and ridden out by its spool
+    # the temporary folder (database, spool, service log) is gone
+    assert workdirs and not any(d.exists() for d in workdirs)
