@@ -54,6 +54,10 @@ class SchedulerConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     min_poses_first: int = Field(6, ge=1, description="training poses needed before the first fit")
+    update: str = Field(
+        "sequential", pattern="^(sequential|full)$",
+        description="'sequential': prior = published posterior, data = new poses; 'full': every refit fits the whole buffer under the datasheet prior",
+    )
     refit_every_poses: int = Field(8, ge=1, description="refit after this many new poses")
     refit_every_hours: float = Field(24.0, gt=0, description="...or after this many hours with >= 1 new pose")
     conflict_chi2: float = Field(6.0, gt=0, description="sequential-update reduced chi2 above this: full refit")
@@ -252,7 +256,7 @@ class OnlineCalibrator:
         fit: FitResult | None = None
         used = train
         try:
-            if self.current is not None:
+            if self.current is not None and self.sched_cfg.update == "sequential":
                 new_train = train & ~self.buffer.absorbed
                 if new_train.sum() == 0:
                     return self._refuse(t_now, "no_still_poses", "no new training pose since the last refit", "sequential")

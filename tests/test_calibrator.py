@@ -141,3 +141,17 @@ def test_warm_refits_are_sequential_and_do_not_double_count():
     assert stds[-1] > stds[0] / 4
     theta = A9.from_dict(cal.calibration()["params"])
     assert sphere_rms_mg(A9, theta, truth) < 1.0
+
+
+def test_full_update_mode_refits_the_whole_buffer():
+    rng = np.random.default_rng(37)
+    truth = random_truth(rng)
+    cal = OnlineCalibrator({"scheduler": {"update": "full"}})
+    t0 = 0.0
+    for _ in range(2):
+        t, raw, _ = sample_stream(rng, A9, truth, spread_directions(rng, 16), t0_s=t0)
+        t0 = t[-1] + 100
+        _feed_in_chunks(cal, t, raw)
+        cal.flush()
+    assert cal.last_refit["mode"] == "full"
+    assert sphere_rms_mg(A9, A9.from_dict(cal.calibration()["params"]), truth) < 1.0
