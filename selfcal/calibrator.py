@@ -184,8 +184,9 @@ class OnlineCalibrator:
         events = self._take_windows(windows)
         if self.new_since_refit > 0:
             events.append(self.refit())
-        # poses that only validated the last publication are training data now: absorb them
-        if self.current is not None and events and events[-1]["published"]:
+        # poses that only validated a publication are training data now: absorb them (whether
+        # that publication happened here or earlier, inside feed_poses)
+        if self.current is not None:
             pending = self.buffer.validated & ~self.buffer.absorbed
             if pending.any():
                 self.new_since_refit = int(pending.sum())
@@ -277,7 +278,7 @@ class OnlineCalibrator:
                 theta0 = self.initial_params_u if self.current is None else np.asarray(self.current["theta_u"])
                 fit = fit_poses(
                     self.model, self.buffer.pose_data(train), prior=datasheet_prior(self.model, self.fit_cfg),
-                    theta0_u=theta0, cfg=self.fit_cfg, exhaustive=True,
+                    theta0_u=theta0, cfg=self.fit_cfg,
                 )
         except InputError as exc:
             return self._refuse(t_now, "insufficient_coverage", str(exc), mode)

@@ -444,15 +444,11 @@ def ls_axis_aligned(model: ErrorModel, mean_u: np.ndarray, mask: np.ndarray, rid
     gdir = np.zeros_like(u)
     gdir[np.arange(len(u)), k] = np.sign(u[np.arange(len(u)), k])
     design = np.hstack([u, -np.ones((len(u), 1))])  # unknowns: M_i0, M_i1, M_i2, c_i
-    m = np.zeros((3, 3))
-    c = np.zeros(3)
     lhs = design.T @ design + ridge * np.eye(4)
-    for i in range(3):
-        nominal = np.zeros(4)
-        nominal[i] = 1.0
-        sol = np.linalg.solve(lhs, design.T @ gdir[:, i] + ridge * nominal)
-        m[i] = sol[:3]
-        c[i] = sol[3]
+    nominal = np.vstack([np.eye(3), np.zeros((1, 3))])  # columns: row i of M = e_i, c_i = 0
+    sol = np.linalg.solve(lhs, design.T @ gdir + ridge * nominal)  # (4, 3): one column per axis
+    m = sol[:3].T
+    c = sol[3]
     try:
         offset = np.linalg.solve(m, c)
     except np.linalg.LinAlgError:
@@ -754,18 +750,23 @@ def fit_poses(
         best = lm_solve(model, np.asarray(theta0_u, dtype=float), raw_u, noise, prior, temp, t_s, cfg)
         best_name, tried = "given", 1
     if best is None or not good(best) or exhaustive:
+        # other initial values, built lazily in order of usual quality: the quadric (exact
+        # on well-spread sets), the axis-aligned least squares (the insole paper's
+        # correction), the prior mean; the first good LM result ends the search
         base = model.with_effects(())
-        candidates: list[tuple[str, np.ndarray]] = [("prior", prior.mean.copy())]
-        ls = ls_axis_aligned(base, raw_u, axis_aligned_mask(raw_u, cfg.axis_tol_g))
-        if ls is not None:
-            candidates.append(("least_squares_axis_aligned", model.extend_theta(ls, base)))
-        quad = quadric_fit(base, raw_u)
-        if quad is not None:
-            candidates.append(("quadric", model.extend_theta(quad, base)))
-        costs = [cost_of(th) for _, th in candidates]
-        for idx in np.argsort(costs):
-            name, th = candidates[idx]
-            if not np.isfinite(costs[idx]):
+
+        def quadric():
+            q = quadric_fit(base, raw_u)
+            return None if q is None else model.extend_theta(q, base)
+
+        def least_squares():
+            ls = ls_axis_aligned(base, raw_u, axis_aligned_mask(raw_u, cfg.axis_tol_g))
+            return None if ls is None else model.extend_theta(ls, base)
+
+        for name, build in (("quadric", quadric), ("least_squares_axis_aligned", least_squares),
+                            ("prior", lambda: prior.mean.copy())):
+            th = build()
+            if th is None or not np.isfinite(cost_of(th)):
                 continue
             res = lm_solve(model, th, raw_u, noise, prior, temp, t_s, cfg)
             tried += 1
