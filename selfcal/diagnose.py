@@ -457,7 +457,3 @@ def diagnose_recording(rec, config: dict | None = None, base_model: str = "affin
     report["unit"] = rec.unit
     return report, dict(poses, normalizer=normalizer)
 
-
-def pose_sigma_mg(mean_u, sd_u, count, cfg: FitConfig | None = None) -> np.ndarray:
-    """Per-pose residual sd (mg), for reports."""
-    return pose_sigma(mean_u, sd_u, count, cfg or FitConfig()) * 1e3

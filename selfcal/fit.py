@@ -232,18 +232,12 @@ def datasheet_prior(model: ErrorModel, cfg: FitConfig | None = None, inflate: fl
 
 
 def pose_sigma(mean_u: np.ndarray, sd_u: np.ndarray | None, count: np.ndarray, cfg: FitConfig) -> np.ndarray:
-    """Standard deviation (g) of each pose's norm residual, shape (n,).
+    """Standard deviation (g) of each pose's norm residual at unit scales, shape (n,).
 
-    The residual of a pose is the noise of its mean projected on the gravity
-    direction: ``sqrt(sum_i (g_i sd_i)^2 / count)``, plus ``sigma_floor_g`` in
-    quadrature for what the model does not explain.
+    The noise of the pose mean projected on the gravity direction,
+    ``sqrt(sum_i g_i^2 (sd_i^2 / count + floor^2))``: :class:`NoiseModel` at ``s = 1``.
     """
-    norm = np.linalg.norm(mean_u, axis=1, keepdims=True)
-    ghat = mean_u / np.where(norm > 0, norm, 1.0)
-    if sd_u is None:
-        sd_u = np.full_like(mean_u, cfg.default_sample_sd_g)
-    var = np.einsum("ij,ij->i", ghat**2, sd_u**2) / count
-    return np.sqrt(var + cfg.sigma_floor_g**2)
+    return NoiseModel.from_poses(mean_u, sd_u, count, cfg)(np.ones(6))[0]
 
 
 @dataclass
@@ -692,7 +686,6 @@ def fit_poses(
     prior: Prior | None = None,
     theta0_u: np.ndarray | None = None,
     cfg: FitConfig | None = None,
-    exhaustive: bool = False,
 ) -> FitResult:
     """Fit an error model to still poses (MAP with a Gaussian prior).
 
@@ -707,10 +700,6 @@ def fit_poses(
         mean, the axis-aligned least-squares value and the quadric fit, and starts
         from whichever has the lowest cost.
     cfg : FitConfig
-    exhaustive : bool
-        Run LM from every initial value and keep the lowest final cost (for a first
-        fit, whose ``theta0_u`` may be far off: the norm objective has local minima).
-        Otherwise a good result from ``theta0_u`` (a warm start) ends the search.
 
     Returns
     -------
@@ -749,7 +738,7 @@ def fit_poses(
     if theta0_u is not None:  # warm start: the usual refit; other starts only if it fails
         best = lm_solve(model, np.asarray(theta0_u, dtype=float), raw_u, noise, prior, temp, t_s, cfg)
         best_name, tried = "given", 1
-    if best is None or not good(best) or exhaustive:
+    if best is None or not good(best):
         # other initial values, built lazily in order of usual quality: the quadric (exact
         # on well-spread sets), the axis-aligned least squares (the insole paper's
         # correction), the prior mean; the first good LM result ends the search
@@ -772,7 +761,7 @@ def fit_poses(
             tried += 1
             if best is None or not np.isfinite(best.cost) or res.cost < best.cost:
                 best, best_name = res, name
-            if good(best) and not exhaustive:
+            if good(best):
                 break
     if best is None or not np.isfinite(best.cost):
         raise InputError("fit: every initial value gives a non-finite cost (check the data)")

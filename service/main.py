@@ -70,6 +70,14 @@ def _json(obj: Any, status: int = 200, headers: dict[str, str] | None = None) ->
     return Response(orjson.dumps(obj), status_code=status, media_type="application/json", headers=headers)
 
 
+def _current_or_404(store, device_id: str):
+    """The device's (device row, current version), or a 404 naming the device."""
+    found = store.current(device_id)
+    if found is None:
+        raise FieldError("device_id", f"unknown device {device_id!r}", 404)
+    return found
+
+
 def _model(obj: BaseModel, status: int = 200) -> Response:
     return Response(obj.model_dump_json(), status_code=status, media_type="application/json")
 
@@ -388,9 +396,7 @@ def create_app(
         tags=["calibration"],
     )
     async def get_calibration(device_id: DeviceId, store: StoreDep) -> Response:
-        found = store.current(device_id)
-        if found is None:
-            raise FieldError("device_id", f"unknown device {device_id!r}", 404)
+        found = _current_or_404(store, device_id)
         return _model(calibration_out(device_id, *found))
 
     @app.put(
@@ -436,9 +442,7 @@ def create_app(
         tags=["calibration"],
     )
     async def get_history(device_id: DeviceId, store: StoreDep) -> Response:
-        found = store.current(device_id)
-        if found is None:
-            raise FieldError("device_id", f"unknown device {device_id!r}", 404)
+        found = _current_or_404(store, device_id)
         versions = [_versions_out(v) for v in store.history(device_id)]
         return _model(HistoryOut(device_id=device_id, current_version=found[0].current_version, versions=versions))
 
@@ -459,9 +463,7 @@ def create_app(
     async def post_rollback(device_id: DeviceId, request: Request, store: StoreDep, worker: WorkerDep) -> Response:
         body = await _json_body(request, RollbackIn, settings.max_body_bytes)
         assert isinstance(body, RollbackIn)
-        found = store.current(device_id)
-        if found is None:
-            raise FieldError("device_id", f"unknown device {device_id!r}", 404)
+        found = _current_or_404(store, device_id)
         current = found[0].current_version
         target = body.to_version
         if target is None:
