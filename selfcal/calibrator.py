@@ -1,24 +1,35 @@
-"""The online calibrator: detector -> pose buffer -> scheduler -> fit -> guard.
+"""The online calibrator: detector -> pose store -> scheduler -> robust MAP refit -> guard -> publication.
 
 One object per device. Feed it samples (or ready-made still poses) in any chunking;
-it detects still windows, keeps a diverse pose buffer, refits when the scheduler says
-so, and publishes a new model only when the guard lets it. Its whole state
+it detects still windows, keeps every one of them in a compressed pose store
+(:mod:`selfcal.poses`), refits when the scheduler says so, and publishes a new model
+only when the guard lets it and the model has changed significantly. Its whole state
 serialises to JSON and back exactly (:meth:`OnlineCalibrator.to_json`).
 
-Update rule (observability-aware, no double counting)
------------------------------------------------------
-* First publication: a full MAP fit of every training pose in the buffer under the
-  datasheet prior (``selfcal.fit.datasheet_prior``).
-* Later refits are *sequential*: the prior is the published model with its
-  covariance, inflated by process noise for the time elapsed (sensors drift), and
-  the data are the poses not yet absorbed into it. Directions the new poses do not
-  determine stay at the prior. A pose that has been absorbed is not fitted again,
-  so the same information is never counted twice.
-* If the new poses conflict with the prior (reduced chi² above
-  ``scheduler.conflict_chi2``), the calibrator falls back to a full fit of the whole
-  buffer under the datasheet prior.
-* The guard compares the candidate with the current model on held-out poses (never
-  fitted) and checks plausibility; a refused refit is typed and explained.
+Why it is consistent by construction (docs/internals.md has the measurements)
+---------------------------------------------------------------------------
+* **Nothing is absorbed.** Every refit is one MAP problem over the whole pose store
+  under the datasheet prior (or a factory calibration the operator installed),
+  re-linearised at every refit and warm-started from the published model. A pose is
+  never folded into a Gaussian linearised at an early, wrong estimate.
+* **Repeats do not average down.** The store pools repeats of one pose into a cell
+  whose systematic floor counts once; its noise is the cell's own scatter, not a
+  datasheet guess.
+* **Robust.** A Huber loss on whitened residuals, and a model-free gate inside each
+  cell: a "still" window that was not still cannot lock the device in.
+* **Guard without lock-in.** "Worse" is decided on held-out cells that *neither*
+  model was fitted to: the candidate is refitted without one fold (rotating), and is
+  compared with the published model on the cells of that fold that appeared after
+  the published model was fitted.
+* **Status is a promise.** Every version carries ``predicted_sphere_rms_mg``, the
+  calibrated-norm RMS error over the whole sphere that its covariance predicts.
+  ``calibrated`` means that this is at most ``calibrated_max_sphere_mg`` *and* the
+  data determine every base parameter; ``provisional`` is anything published short of
+  that.
+* **Publication on significant change only**: a status change, a parameter change
+  that is significant against the new covariance (chi² quantile), or a predicted
+  sphere error that improved by a factor; never more often than
+  ``publish_min_interval_s`` of data time except for a status change.
 """
 
 from __future__ import annotations
@@ -28,6 +39,7 @@ from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.stats import chi2 as _chi2
 
 from selfcal.config import section
 from selfcal.errors import InputError
@@ -36,40 +48,50 @@ from selfcal.fit import (
     FitResult,
     GuardConfig,
     GuardDecision,
+    PoseData,
     Prior,
     datasheet_prior,
     fit_poses,
     implausible,
-    rms_mg,
+    predicted_sphere_rms_mg,
+    variance_components,
 )
 from selfcal.models import ErrorModel, Normalizer
-from selfcal.poses import PoseBuffer, PoseConfig
+from selfcal.poses import PoseConfig, PoseStore
 
 SECONDS_PER_DAY = 86400.0
+STATE_FORMAT_VERSION = 2
 
 
 class SchedulerConfig(BaseModel):
-    """The ``[scheduler]`` section: when to refit, and how fast the prior ages."""
+    """The ``[scheduler]`` section: when to refit, when to publish, what ``calibrated`` means."""
 
     model_config = ConfigDict(extra="forbid")
 
-    min_poses_first: int = Field(6, ge=1, description="training poses needed before the first fit")
-    update: str = Field(
-        "sequential", pattern="^(sequential|full)$",
-        description="'sequential': prior = published posterior, data = new poses; 'full': every refit fits the whole buffer under the datasheet prior",
+    min_poses_first: int = Field(6, ge=1, description="pose cells needed before the first fit")
+    refit_every_poses: int = Field(8, ge=1, description="refit after this many new pose cells")
+    refit_every_windows: int = Field(720, ge=1, description="...or after this many new still windows")
+    refit_every_hours: float = Field(6.0, gt=0, description="...or after this many hours with >= 1 new window")
+    calibrated_min_poses: int = Field(12, ge=1, description="pose cells needed before status 'calibrated'")
+    calibrated_max_sphere_mg: float = Field(
+        2.0, gt=0, description="'calibrated' needs a predicted whole-sphere norm RMS error at most this, mg"
     )
-    refit_every_poses: int = Field(8, ge=1, description="refit after this many new poses")
-    refit_every_hours: float = Field(24.0, gt=0, description="...or after this many hours with >= 1 new pose")
-    conflict_chi2: float = Field(6.0, gt=0, description="sequential-update reduced chi2 above this: full refit")
-    calibrated_min_poses: int = Field(12, ge=1, description="poses absorbed before status 'calibrated'")
+    publish_chi2_quantile: float = Field(
+        0.99, gt=0, lt=1, description="a parameter change is significant beyond this chi2 quantile (new covariance)"
+    )
+    publish_improve_factor: float = Field(
+        1.25, gt=1, description="...or when the predicted sphere error shrinks by this factor"
+    )
+    publish_min_interval_s: float = Field(
+        1800.0, ge=0, description="at most one version per this much data time (a status change is always published), s"
+    )
+    cell_floor_g: float = Field(
+        1e-4, gt=0, description="least shared error of one pose cell (repeats in a cell do not average it down), g")
     process_noise_bias_g_per_sqrt_day: float = Field(
-        2e-4, ge=0, description="random-walk sd added to the offset prior per sqrt(day), g"
+        2e-4, ge=0, description="random-walk sd of the offsets per sqrt(day): older cells weigh less, g"
     )
     process_noise_scale_per_sqrt_day: float = Field(
-        1e-4, ge=0, description="random-walk sd added to the scale prior per sqrt(day), relative"
-    )
-    process_noise_effect_per_sqrt_day: float = Field(
-        0.0, ge=0, description="random-walk sd of effect parameters per sqrt(day) (relative to their prior sd)"
+        1e-4, ge=0, description="random-walk sd of the scales per sqrt(day), relative"
     )
 
     @classmethod
@@ -84,8 +106,15 @@ def _detector_module():
     return detect
 
 
+def _clipped_rms_mg(model: ErrorModel, theta_u: np.ndarray, poses: PoseData, clip_g: float) -> float:
+    """RMS norm residual (mg) with each residual clipped at ``clip_g`` (one wild pose cannot decide)."""
+    r = model.residuals(theta_u, poses.mean, poses.temp_c, poses.t_s)
+    r = np.clip(r, -clip_g, clip_g)
+    return float(np.sqrt(np.mean(r * r)) * 1e3)
+
+
 class OnlineCalibrator:
-    """Per-device online calibrator (inputs in g).
+    """Per-device online calibrator (inputs in g, or normalised units ~g).
 
     Parameters
     ----------
@@ -109,27 +138,30 @@ class OnlineCalibrator:
         detect = _detector_module()
         self.det_cfg = detect.DetectorConfig.from_section(section(self.config, "detector"))
         self.detector = detect.StaticDetector(self.det_cfg)
-        self.buffer = PoseBuffer.empty(self.pose_cfg)
+        self.store = PoseStore.empty(self.pose_cfg)
         self.initial_params_u = None if initial_params_u is None else np.asarray(initial_params_u, dtype=float)
         self.current: dict | None = None  # {"theta_u", "cov_u", "t_s", "version", "calibration"}
+        self.seeded_prior: dict | None = None  # a factory calibration installed as the prior
         self.last_refit: dict | None = None
         self.n_refits = 0
-        self.new_since_refit = 0
+        self.new_since_refit = 0  # new pose cells
+        self.windows_since_refit = 0
         self.last_refit_t_s: float | None = None
         self.t_last_s: float | None = None
         self.n_samples = 0
 
     # ------------------------------------------------------------------ status
     @property
+    def buffer(self) -> PoseStore:
+        """The pose store (old name, kept for callers that count poses)."""
+        return self.store
+
+    @property
     def status(self) -> str:
-        """``uncalibrated``, ``provisional`` or ``calibrated``."""
+        """``uncalibrated``, ``provisional`` or ``calibrated`` (of the published model)."""
         if self.current is None:
             return "uncalibrated"
-        cal = self.current["calibration"]
-        base = set(self.model.param_names[: 9 if self.model.base != "scale6" else 6])
-        if base.issubset(set(cal["determined"])) and cal["n_poses_absorbed"] >= self.sched_cfg.calibrated_min_poses:
-            return "calibrated"
-        return "provisional"
+        return str(self.current["calibration"].get("status", "provisional"))
 
     def calibration(self) -> dict | None:
         """The published calibration (design-contract JSON) with status and version, or None."""
@@ -145,16 +177,6 @@ class OnlineCalibrator:
         if self.current is None:
             return np.asarray(acc_g, dtype=float)
         return self.model.apply(np.asarray(self.current["theta_u"]), acc_g, temp_c, t_s)
-
-    def _to_cal(self):
-        if self.current is None:
-            return None
-        matrix, offset = self.model.linear(np.asarray(self.current["theta_u"]))
-
-        def to_cal(x):
-            return (np.asarray(x) - offset) @ matrix.T
-
-        return to_cal
 
     # ------------------------------------------------------------------ feeding
     def feed_samples(self, t_s, acc_g, temp_c=None, pressure_kpa=None) -> list[dict]:
@@ -173,24 +195,17 @@ class OnlineCalibrator:
             raise InputError(f"feed_samples: acc_g must be (n, 3) with n = len(t_s); got {acc_g.shape}, {t_s.shape}")
         if t_s.size == 0:
             return []
-        windows = self.detector.feed(t_s, acc_g, temp_c=temp_c, pressure_kpa=pressure_kpa, to_cal=self._to_cal())
+        # no model-dependent gate: the poses that could refute the model are never filtered by it
+        windows = self.detector.feed(t_s, acc_g, temp_c=temp_c, pressure_kpa=pressure_kpa, to_cal=None)
         self.n_samples += int(t_s.size)
         self.t_last_s = float(t_s[-1])
         return self._take_windows(windows)
 
     def flush(self) -> list[dict]:
         """End of stream: close an open still window and refit if anything is new."""
-        windows = self.detector.flush()
-        events = self._take_windows(windows)
-        if self.new_since_refit > 0:
-            events.append(self.refit())
-        # poses that only validated a publication are training data now: absorb them (whether
-        # that publication happened here or earlier, inside feed_poses)
-        if self.current is not None:
-            pending = self.buffer.validated & ~self.buffer.absorbed
-            if pending.any():
-                self.new_since_refit = int(pending.sum())
-                events.append(self.refit())
+        events = self._take_windows(self.detector.flush())
+        if self.windows_since_refit > 0:
+            events.append(self.refit(final=True))
         return events
 
     def _take_windows(self, w) -> list[dict]:
@@ -202,184 +217,247 @@ class OnlineCalibrator:
     def feed_poses(self, mean_g, sd_g, n, t_s, temp_c=None) -> list[dict]:
         """Feed still poses directly (a poses table); returns the refit outcomes.
 
+        Poses are taken in time order, and the scheduler may refit between them, so
+        the result does not depend on how a poses table is split into calls.
+
         Parameters
         ----------
-        mean_g, sd_g : ndarray, shape (k, 3), g
+        mean_g, sd_g : ndarray, shape (k, 3), g (sd may be None)
         n : ndarray, shape (k,) — samples per window
         t_s : ndarray, shape (k,), s — window centre times
         temp_c : ndarray, shape (k,), degC, optional
         """
         mean_g = np.atleast_2d(np.asarray(mean_g, dtype=float))
-        t_s = np.atleast_1d(np.asarray(t_s, dtype=float))
-        if mean_g.shape[0] == 0:
+        k = mean_g.shape[0]
+        if k == 0:
             return []
-        stats = self.buffer.add(mean_g, sd_g, n, t_s, temp_c)
-        self.new_since_refit += stats["new_info"]
-        self.t_last_s = max(self.t_last_s or -np.inf, float(np.max(t_s)))
-        if self._due():
-            return [self.refit()]
-        return []
+        t_s = np.broadcast_to(np.asarray(t_s, dtype=float), (k,))
+        sd = None if sd_g is None else np.broadcast_to(np.asarray(sd_g, dtype=float), (k, 3))
+        n = np.broadcast_to(np.asarray(n, dtype=float), (k,))
+        temp = None if temp_c is None else np.broadcast_to(np.asarray(temp_c, dtype=float), (k,))
+        events: list[dict] = []
+        i = 0
+        while i < k:
+            # feed up to the point where the scheduler could fire: cheap batches, same result
+            j = min(k, i + self._room())
+            stats = self.store.add(mean_g[i:j], None if sd is None else sd[i:j], n[i:j], t_s[i:j],
+                                   None if temp is None else temp[i:j], rate_hz=self.det_cfg.rate_hz)
+            self.new_since_refit += stats["new_info"]
+            self.windows_since_refit += stats["added"]
+            self.t_last_s = max(self.t_last_s if self.t_last_s is not None else -np.inf, float(np.max(t_s[i:j])))
+            if self._due():
+                events.append(self.refit())
+            i = j
+        return events
+
+    def _room(self) -> int:
+        """Windows that can be added before the scheduler could fire (>= 1)."""
+        s = self.sched_cfg
+        if self.current is None:
+            return 1
+        left_cells = s.refit_every_poses - self.new_since_refit
+        left_windows = s.refit_every_windows - self.windows_since_refit
+        return int(max(1, min(left_cells, left_windows)))
 
     def _due(self) -> bool:
-        if self.new_since_refit <= 0:
+        s = self.sched_cfg
+        if self.windows_since_refit <= 0:
             return False
         if self.current is None:
-            n_train = int(np.sum(~self._heldout()))
-            return n_train >= self.sched_cfg.min_poses_first
-        if self.new_since_refit >= self.sched_cfg.refit_every_poses:
+            return self.new_since_refit > 0 and int(self._usable().sum()) >= s.min_poses_first
+        if self.new_since_refit >= s.refit_every_poses or self.windows_since_refit >= s.refit_every_windows:
             return True
         if self.last_refit_t_s is not None and self.t_last_s is not None:
-            return (self.t_last_s - self.last_refit_t_s) >= self.sched_cfg.refit_every_hours * 3600.0
+            return (self.t_last_s - self.last_refit_t_s) >= s.refit_every_hours * 3600.0
         return False
 
     # ------------------------------------------------------------------ refit
-    def _aged_prior(self, t_now: float) -> Prior:
-        cur = self.current
-        cov = np.asarray(cur["cov_u"], dtype=float).copy()
-        days = max(0.0, (t_now - cur["t_s"]) / SECONDS_PER_DAY)
-        q = np.zeros(self.model.n_params)
-        q[0:3] = self.sched_cfg.process_noise_bias_g_per_sqrt_day ** 2
-        q[3:6] = self.sched_cfg.process_noise_scale_per_sqrt_day ** 2
-        ds = np.diag(datasheet_prior(self.model, self.fit_cfg).cov)
-        for eff in self.model.effects:
-            sl = self.model.index(eff)
-            q[sl] = (self.sched_cfg.process_noise_effect_per_sqrt_day ** 2) * ds[sl]
-        cov[np.diag_indices_from(cov)] += q * days
-        return Prior(np.asarray(cur["theta_u"], dtype=float), cov)
+    def _usable(self) -> np.ndarray:
+        """Cells the model can use (temperature models need cells with a temperature)."""
+        if any(e.startswith("temperature") for e in self.model.effects):
+            return np.isfinite(self.store.mean_temp())
+        return np.ones(len(self.store), dtype=bool)
 
-    def refit(self) -> dict:
-        """Refit now (the scheduler calls this); returns the outcome dict."""
+    def prior(self) -> Prior:
+        """The prior of every refit: the datasheet, or the installed factory calibration."""
+        if self.seeded_prior is not None:
+            return Prior(np.asarray(self.seeded_prior["mean"], float), np.asarray(self.seeded_prior["cov"], float))
+        return datasheet_prior(self.model, self.fit_cfg)
+
+    def _age_var(self) -> float:
+        s = self.sched_cfg
+        return s.process_noise_bias_g_per_sqrt_day**2 + s.process_noise_scale_per_sqrt_day**2
+
+    def refit(self, final: bool = False) -> dict:
+        """Refit now (the scheduler calls this); returns the outcome dict.
+
+        ``final`` (end of a stream): publish any change that is not negligible, without
+        waiting for the minimum interval.
+        """
         t_now = float(self.t_last_s if self.t_last_s is not None else 0.0)
         self.n_refits += 1
-        held = self._heldout()
-        train = ~held
-        mode = "full"
-        fit: FitResult | None = None
-        used = train
+        usable = self._usable()
+        n_cells = int(usable.sum())
+        if n_cells < self.guard_cfg.min_poses:
+            reason = "insufficient_coverage" if len(self.store) else "no_still_poses"
+            return self._refuse(t_now, reason, f"{n_cells} pose cell(s); at least {self.guard_cfg.min_poses} are needed")
+        data = self.store.pose_data(usable, t_now, self._age_var())
+        prior = self.prior()
+        theta0 = self.initial_params_u if self.current is None else np.asarray(self.current["theta_u"])
+        floor = self.sched_cfg.cell_floor_g
+        cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor})
         try:
-            if self.current is not None and self.sched_cfg.update == "sequential":
-                new_train = train & ~self.buffer.absorbed
-                if new_train.sum() == 0:
-                    return self._refuse(t_now, "no_still_poses", "no new training pose since the last refit", "sequential")
-                prior = self._aged_prior(t_now)
-                fit = fit_poses(
-                    self.model, self.buffer.pose_data(new_train), prior=prior,
-                    theta0_u=prior.mean, cfg=self.fit_cfg,
-                )
-                mode, used = "sequential", new_train
-                if fit.chi2_red > self.sched_cfg.conflict_chi2:
-                    fit, mode, used = None, "full_after_conflict", train
-            if fit is None:
-                if train.sum() < self.guard_cfg.min_poses:
-                    return self._refuse(
-                        t_now, "insufficient_coverage" if len(self.buffer) else "no_still_poses",
-                        f"{int(train.sum())} training pose(s); at least {self.guard_cfg.min_poses} are needed", mode,
-                    )
-                theta0 = self.initial_params_u if self.current is None else np.asarray(self.current["theta_u"])
-                fit = fit_poses(
-                    self.model, self.buffer.pose_data(train), prior=datasheet_prior(self.model, self.fit_cfg),
-                    theta0_u=theta0, cfg=self.fit_cfg,
-                )
+            fit = fit_poses(self.model, data, prior=prior, theta0_u=theta0, cfg=cfg, robust=True)
+            # the noise the data show: shared floor and cell noise scaled (never below the model)
+            c_floor, c_noise = variance_components(self.model, fit, data, floor)
+            if c_floor > 1.0 or c_noise > 1.0:
+                cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor * np.sqrt(c_floor)})
+                data = PoseData(data.mean, None if data.sd is None else data.sd * np.sqrt(c_noise),
+                                data.count, data.t_s, data.temp_c)
+                fit = fit_poses(self.model, data, prior=prior, theta0_u=fit.theta_u, cfg=cfg, robust=True)
         except InputError as exc:
-            return self._refuse(t_now, "insufficient_coverage", str(exc), mode)
-
-        decision = self._guard(fit, held, first=mode != "sequential")
+            return self._refuse(t_now, "insufficient_coverage", str(exc))
+        fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}
+        self._fit_cfg_now = cfg
+        decision = self._guard(fit, data, usable, prior)
         if not decision.publish:
-            return self._refuse(t_now, decision.reason, decision.message, mode, fit, decision)
-        return self._publish(t_now, fit, used, mode, decision)
+            return self._refuse(t_now, decision.reason, decision.message, fit, decision)
+        cal = self._describe(fit, prior, t_now, n_cells, decision)
+        hold = self._hold(fit, cal, t_now, final)
+        if hold:
+            return self._refuse(t_now, "no_significant_change", hold, fit, decision)
+        return self._publish(t_now, fit, cal, decision)
 
-    def _heldout(self) -> np.ndarray:
-        """Held-out mask: every k-th pose id, not yet absorbed, once the buffer is large enough."""
-        if len(self.buffer) < self.guard_cfg.heldout_min_poses:
-            return np.zeros(len(self.buffer), dtype=bool)
-        return self.buffer.heldout(self.guard_cfg.heldout_every) & ~self.buffer.absorbed & ~self.buffer.validated
-
-    def _guard(self, fit: FitResult, held: np.ndarray, first: bool = True) -> GuardDecision:
+    def _guard(self, fit: FitResult, data: PoseData, usable: np.ndarray, prior: Prior) -> GuardDecision:
         g = self.guard_cfg
         if not fit.success:
             return GuardDecision(False, "not_converged", f"LM did not converge: {fit.message}")
         why = implausible(self.model, fit.theta_u, g)
         if why:
             return GuardDecision(False, "implausible", why)
-        if fit.residual_rms_mg > g.max_residual_rms_mg:
+        inl = np.abs(fit.residuals_g / fit.sigma_g) <= self.fit_cfg.reject_z
+        rms_in = float(np.sqrt(np.mean(fit.residuals_g[inl] ** 2)) * 1e3) if inl.any() else np.inf
+        if rms_in > g.max_residual_rms_mg:
             return GuardDecision(
-                False, "implausible",
-                f"fit residual RMS {fit.residual_rms_mg:.2f} mg exceeds {g.max_residual_rms_mg} mg",
-            )
-        if first and fit.n_determined_directions < g.min_determined:
+                False, "implausible", f"fit residual RMS {rms_in:.2f} mg exceeds {g.max_residual_rms_mg} mg")
+        if self.current is None and fit.n_determined_directions < g.min_determined:
             return GuardDecision(False, "insufficient_coverage", "the poses determine no parameter direction")
+        # held out: one fold (rotating), and only cells that appeared after the published
+        # model was fitted, so that neither model has seen them
+        fold = self.n_refits % self.pose_cfg.folds
+        t_first = self.store.t_first[usable]
+        held = self.store.folds()[usable] == fold
+        if self.current is not None:
+            held &= t_first > float(self.current.get("t_data_s", self.current["t_s"]))
+        label = "published model" if self.current else "uncalibrated (nominal) model"
+        if held.sum() < g.min_heldout or (~held).sum() < g.min_poses:
+            return GuardDecision(True, None, f"{int(held.sum())} unseen held-out cell(s): no comparison", None, None)
         cur_theta = np.asarray(self.current["theta_u"]) if self.current else self.model.nominal()
-        ident = Normalizer()
-        if held.sum() >= g.min_heldout:
-            ref = self.buffer.pose_data(held)
-            where = f"{int(held.sum())} held-out poses"
-        else:
-            ref = self.buffer.pose_data()
-            where = f"all {len(self.buffer)} poses (too few held out)"
-        new = rms_mg(self.model, fit.theta_u, ident, ref)
-        cur = rms_mg(self.model, cur_theta, ident, ref)
-        label = "current model" if self.current else "uncalibrated (nominal) model"
+        try:
+            cv = fit_poses(self.model, data.subset(~held), prior=prior, theta0_u=fit.theta_u,
+                           cfg=self._fit_cfg_now, robust=True)
+        except InputError as exc:
+            return GuardDecision(False, "insufficient_coverage", f"held-out refit: {exc}")
+        ref = data.subset(held)
+        clip = g.max_residual_rms_mg * 1e-3
+        new = _clipped_rms_mg(self.model, cv.theta_u, ref, clip)
+        cur = _clipped_rms_mg(self.model, cur_theta, ref, clip)
+        where = f"{int(held.sum())} held-out cells (fold {fold}) that neither model was fitted to"
         if new > cur * (1 + g.tolerance_rel) + g.tolerance_mg:
             return GuardDecision(
-                False, "worse_than_current",
-                f"held-out RMS {new:.3f} mg on {where} is worse than the {label}'s {cur:.3f} mg", new, cur,
-            )
+                False, "worse_than_current", f"held-out RMS {new:.3f} mg on {where} is worse than the {label}'s {cur:.3f} mg",
+                new, cur)
         return GuardDecision(True, None, f"held-out RMS {new:.3f} mg vs {label} {cur:.3f} mg on {where}", new, cur)
 
-    def _refuse(self, t_now, reason, message, mode, fit=None, decision=None) -> dict:
+    def _determined(self, cov_u: np.ndarray, prior: Prior) -> np.ndarray:
+        ds = np.diag(datasheet_prior(self.model, self.fit_cfg).cov)
+        return np.sqrt(np.diag(cov_u) / ds) < self.fit_cfg.determined_ratio
+
+    def _status_of(self, cov_u: np.ndarray, prior: Prior, predicted_mg: float, n_cells: int) -> str:
+        det = self._determined(cov_u, prior)
+        n_base = 6 if self.model.base == "scale6" else 9
+        ok = bool(det[:n_base].all()) and predicted_mg <= self.sched_cfg.calibrated_max_sphere_mg
+        return "calibrated" if ok and n_cells >= self.sched_cfg.calibrated_min_poses else "provisional"
+
+    def _describe(self, fit: FitResult, prior: Prior, t_now: float, n_cells: int, decision: GuardDecision) -> dict:
+        cal = fit.to_calibration(unit="g")
+        det = self._determined(fit.cov_u, prior)
+        names = self.model.param_names
+        cal["determined"] = [n for n, d in zip(names, det) if d]
+        cal["undetermined"] = [n for n, d in zip(names, det) if not d]
+        predicted = predicted_sphere_rms_mg(self.model, fit.theta_u, fit.cov_u, t_now)
+        cal["predicted_sphere_rms_mg"] = predicted
+        cal["status"] = self._status_of(fit.cov_u, prior, predicted, n_cells)
+        cal["n_poses"] = n_cells
+        cal["n_windows"] = int(self.store.window_counts().sum())
+        cal["n_rejected"] = int(fit.extra.get("n_rejected", 0))
+        cal["refit_mode"] = "full"
+        cal["noise_scale"] = fit.extra.get("noise_scale")
+        cal["t_s"] = t_now
+        cal["provenance"] = self.store.summary()
+        cal["heldout_rms_mg"] = decision.heldout_rms_mg_new
+        return cal
+
+    def _hold(self, fit: FitResult, cal: dict, t_now: float, final: bool = False) -> str | None:
+        """Why a passing candidate is not published (no significant change), or None."""
+        if self.current is None:
+            return None
+        if cal["status"] != self.status:
+            return None
+        s = self.sched_cfg
+        since = t_now - float(self.current["t_s"])
+        if since < s.publish_min_interval_s and not final:
+            return f"last version {since:.0f} s ago (at most one per {s.publish_min_interval_s:g} s of data)"
+        d = fit.theta_u - np.asarray(self.current["theta_u"], float)
+        try:
+            d2 = float(d @ np.linalg.solve(fit.cov_u, d))
+        except np.linalg.LinAlgError:
+            d2 = np.inf
+        thr = float(_chi2.ppf(0.5 if final else s.publish_chi2_quantile, self.model.n_params))
+        pred_cur = self.current["calibration"].get("predicted_sphere_rms_mg")
+        factor = 1.05 if final else s.publish_improve_factor
+        improved = pred_cur is None or cal["predicted_sphere_rms_mg"] * factor <= float(pred_cur)
+        if d2 > thr or improved:
+            return None
+        return (f"change chi2 {d2:.1f} <= {thr:.1f} and predicted sphere error {cal['predicted_sphere_rms_mg']:.3f} mg "
+                f"vs published {float(pred_cur):.3f} mg")
+
+    def _refuse(self, t_now, reason, message, fit=None, decision=None) -> dict:
         self.new_since_refit = 0  # wait for new poses before trying again
+        self.windows_since_refit = 0
         self.last_refit_t_s = t_now
         self.last_refit = {
-            "t_s": t_now, "published": False, "reason": reason, "message": message, "mode": mode,
-            "n_poses": len(self.buffer),
+            "t_s": t_now, "published": False, "reason": reason, "message": message, "mode": "full",
+            "n_poses": len(self.store),
             "fit_ms": None if fit is None else fit.fit_ms,
             "heldout_rms_mg_new": None if decision is None else decision.heldout_rms_mg_new,
             "heldout_rms_mg_current": None if decision is None else decision.heldout_rms_mg_current,
         }
         return dict(self.last_refit, calibration=None)
 
-    def _cumulative_determined(self, cov_u: np.ndarray) -> np.ndarray:
-        ds = np.diag(datasheet_prior(self.model, self.fit_cfg).cov)
-        return np.sqrt(np.diag(cov_u) / ds) < self.fit_cfg.determined_ratio
-
-    def _publish(self, t_now, fit: FitResult, used: np.ndarray, mode: str, decision: GuardDecision) -> dict:
+    def _publish(self, t_now, fit: FitResult, cal: dict, decision: GuardDecision) -> dict:
         version = (self.current["version"] if self.current else 0) + 1
-        self.buffer.mark_absorbed(self.buffer.pose_id[used], t_now)
-        self.buffer.mark_validated(self.buffer.pose_id[self._heldout()])
-        cal = fit.to_calibration(unit="g")
-        det = self._cumulative_determined(fit.cov_u)
-        names = self.model.param_names
-        cal["determined_this_refit"] = cal.pop("determined")
-        cal["undetermined_this_refit"] = cal.pop("undetermined")
-        cal["determined"] = [n for n, d in zip(names, det) if d]
-        cal["undetermined"] = [n for n, d in zip(names, det) if not d]
-        all_poses = self.buffer.pose_data()
-        cal["residual_rms_mg"] = rms_mg(self.model, fit.theta_u, Normalizer(), all_poses)
-        cal["n_poses"] = len(self.buffer)
-        cal["n_poses_absorbed"] = int(self.buffer.absorbed.sum())
-        cal["refit_mode"] = mode
-        cal["t_s"] = t_now
-        cal["provenance"] = self.buffer.summary()
-        cal["heldout_rms_mg"] = decision.heldout_rms_mg_new
         self.current = {
             "theta_u": fit.theta_u.tolist(),
             "cov_u": fit.cov_u.tolist(),
             "t_s": t_now,
+            "t_data_s": float(self.store.t_last.max()) if len(self.store) else t_now,
             "version": version,
             "calibration": cal,
         }
         self.new_since_refit = 0
+        self.windows_since_refit = 0
         self.last_refit_t_s = t_now
         self.last_refit = {
-            "t_s": t_now, "published": True, "reason": None, "message": decision.message, "mode": mode,
-            "n_poses": len(self.buffer), "fit_ms": fit.fit_ms, "version": version,
+            "t_s": t_now, "published": True, "reason": None, "message": decision.message, "mode": "full",
+            "n_poses": len(self.store), "fit_ms": fit.fit_ms, "version": version,
             "heldout_rms_mg_new": decision.heldout_rms_mg_new,
             "heldout_rms_mg_current": decision.heldout_rms_mg_current,
         }
         return dict(self.last_refit, calibration=self.calibration())
 
     def seed_calibration(self, params: dict[str, float], std: dict[str, float] | None = None, t_s: float = 0.0) -> None:
-        """Install a factory calibration (params in g units) as the published model."""
+        """Install a factory calibration (params in g units) as the published model and the prior of later refits."""
         theta = self.model.from_dict(params)
         sd = np.sqrt(np.diag(datasheet_prior(self.model, self.fit_cfg).cov))
         if std:
@@ -387,38 +465,46 @@ class OnlineCalibrator:
         if np.any(~np.isfinite(sd)) or np.any(sd <= 0):
             raise InputError("std: every standard deviation must be finite and > 0")
         cov = np.diag(sd**2)
+        prior = Prior(theta, cov)
         matrix, offset = self.model.linear(theta)
-        det = self._cumulative_determined(cov)
+        det = self._determined(cov, prior)
         names = self.model.param_names
+        predicted = predicted_sphere_rms_mg(self.model, theta, cov, t_s)
         cal = {
             "format": "selfcal-calibration", "format_version": 1, "model": self.model.name, "unit": "g",
             "params": self.model.to_dict(theta), "std": {n: float(s) for n, s in zip(names, sd)},
             "determined": [n for n, d in zip(names, det) if d],
             "undetermined": [n for n, d in zip(names, det) if not d],
-            "n_poses": len(self.buffer), "n_poses_absorbed": 0, "residual_rms_mg": None,
+            "n_poses": len(self.store), "n_windows": int(self.store.window_counts().sum()), "residual_rms_mg": None,
             "matrix": matrix.tolist(), "offset": offset.tolist(), "refit_mode": "seeded", "t_s": t_s,
             "temp_ref_c": self.model.temp_ref_c, "t_ref_s": self.model.t_ref_s,
+            "predicted_sphere_rms_mg": predicted,
+            "status": self._status_of(cov, prior, predicted, self.sched_cfg.calibrated_min_poses),
         }
         version = (self.current["version"] if self.current else 0) + 1
-        self.current = {"theta_u": theta.tolist(), "cov_u": cov.tolist(), "t_s": t_s, "version": version, "calibration": cal}
+        self.seeded_prior = {"mean": theta.tolist(), "cov": cov.tolist()}
+        self.current = {"theta_u": theta.tolist(), "cov_u": cov.tolist(), "t_s": t_s, "t_data_s": t_s,
+                        "version": version, "calibration": cal}
 
     # ------------------------------------------------------------------ state
     def state(self) -> dict:
         """The whole state as a JSON-serialisable dict."""
         return {
             "format": "selfcal-calibrator-state",
-            "format_version": 1,
+            "format_version": STATE_FORMAT_VERSION,
             "config": self.config,
             "model": self.model.name,
             "temp_ref_c": self.model.temp_ref_c,
             "t_ref_s": self.model.t_ref_s,
             "initial_params_u": None if self.initial_params_u is None else self.initial_params_u.tolist(),
             "detector": self.detector.state_dict(),
-            "buffer": self.buffer.to_json(),
+            "store": self.store.to_json(),
             "current": self.current,
+            "seeded_prior": self.seeded_prior,
             "last_refit": self.last_refit,
             "n_refits": self.n_refits,
             "new_since_refit": self.new_since_refit,
+            "windows_since_refit": self.windows_since_refit,
             "last_refit_t_s": self.last_refit_t_s,
             "t_last_s": self.t_last_s,
             "n_samples": self.n_samples,
@@ -430,14 +516,13 @@ class OnlineCalibrator:
 
     @classmethod
     def from_json(cls, text: str | dict) -> "OnlineCalibrator":
-        """Rebuild a calibrator from :meth:`to_json` output."""
+        """Rebuild a calibrator from :meth:`to_json` output (format 2; format 1 states are migrated)."""
         d = json.loads(text) if isinstance(text, (str, bytes)) else text
-        if d.get("format") != "selfcal-calibrator-state" or d.get("format_version") != 1:
+        if d.get("format") != "selfcal-calibrator-state" or d.get("format_version") not in (1, STATE_FORMAT_VERSION):
             raise InputError("calibrator state: unknown format or version")
         obj = cls(d["config"], d["model"], d["initial_params_u"])
         obj.model = ErrorModel(d["model"], d["temp_ref_c"], d["t_ref_s"])
         obj.detector = _detector_module().StaticDetector.from_state(obj.det_cfg, d["detector"])
-        obj.buffer = PoseBuffer.from_json(d["buffer"])
         obj.current = d["current"]
         obj.last_refit = d["last_refit"]
         obj.n_refits = d["n_refits"]
@@ -445,4 +530,23 @@ class OnlineCalibrator:
         obj.last_refit_t_s = d["last_refit_t_s"]
         obj.t_last_s = d["t_last_s"]
         obj.n_samples = d["n_samples"]
+        if d["format_version"] == 1:  # pose buffer of the sequential calibrator: re-file its poses
+            b = d["buffer"]
+
+            def arr(x):
+                return np.array([[np.nan if v is None else v for v in row] for row in x], dtype=float).reshape(-1, 3)
+
+            temps = np.array([np.nan if v is None else v for v in b["temp_c"]], dtype=float)
+            if b["mean"]:
+                obj.store.add(arr(b["mean"]), arr(b["sd"]), np.asarray(b["count"], float), np.asarray(b["t_s"], float), temps)
+            obj.windows_since_refit = obj.new_since_refit
+            if obj.current is not None:
+                obj.current["calibration"].setdefault("status", "provisional")
+            return obj
+        obj.store = PoseStore.from_json(d["store"])
+        obj.seeded_prior = d.get("seeded_prior")
+        obj.windows_since_refit = d["windows_since_refit"]
         return obj
+
+
+__all__ = ["OnlineCalibrator", "SchedulerConfig", "Normalizer"]

@@ -30,4 +30,5 @@ REFIT_REASONS = (
     "not_converged",
     "implausible",
     "worse_than_current",
+    "no_significant_change",
 )

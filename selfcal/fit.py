@@ -84,6 +84,15 @@ class FitConfig(BaseModel):
     chi2_restart: float = Field(
         9.0, gt=0, description="reduced chi2 above which LM is restarted from the other initial values"
     )
+    robust_c: float = Field(
+        3.0, gt=0,
+        description="Huber threshold on whitened residuals (|r/sigma| beyond it weighs linearly), for robust fits",
+    )
+    reject_z: float = Field(
+        12.0, gt=0,
+        description="robust fits: |r/sigma| beyond this carries no information (covariance and chi2 exclude it)",
+    )
+    irls_max: int = Field(6, ge=1, description="robust fits: reweighting passes at most")
 
     @classmethod
     def from_section(cls, section: dict[str, Any] | None) -> "FitConfig":
@@ -96,11 +105,7 @@ class GuardConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    heldout_every: int = Field(5, ge=2, description="hold out every k-th pose (by pose id)")
-    heldout_min_poses: int = Field(
-        20, ge=2, description="hold poses out only once the buffer has this many (small sets need them all)"
-    )
-    min_heldout: int = Field(3, ge=1, description="fewer held-out poses: compare on all poses")
+    min_heldout: int = Field(3, ge=1, description="fewer unseen held-out cells: no held-out comparison")
     tolerance_rel: float = Field(0.05, ge=0, description="allowed relative held-out RMS increase")
     tolerance_mg: float = Field(0.05, ge=0, description="allowed absolute held-out RMS increase, mg")
     min_poses: int = Field(6, ge=1, description="fewer poses: insufficient_coverage")
@@ -686,6 +691,7 @@ def fit_poses(
     prior: Prior | None = None,
     theta0_u: np.ndarray | None = None,
     cfg: FitConfig | None = None,
+    robust: bool = False,
 ) -> FitResult:
     """Fit an error model to still poses (MAP with a Gaussian prior).
 
@@ -700,6 +706,10 @@ def fit_poses(
         mean, the axis-aligned least-squares value and the quadric fit, and starts
         from whichever has the lowest cost.
     cfg : FitConfig
+    robust : bool — Huber loss on the whitened residuals (threshold ``cfg.robust_c``),
+        solved by iteratively reweighted LM; poses beyond ``cfg.reject_z`` carry no
+        information in the covariance and the reduced chi² (``extra["weights"]``,
+        ``extra["n_rejected"]``).
 
     Returns
     -------
@@ -766,14 +776,30 @@ def fit_poses(
     if best is None or not np.isfinite(best.cost):
         raise InputError("fit: every initial value gives a non-finite cost (check the data)")
 
+    weights = np.ones(len(raw_u))
+    if robust:  # Huber by iteratively reweighted LM: sigma_k / sqrt(w_k)
+        for _ in range(cfg.irls_max):
+            z = best.fun / noise(best.x)[0]
+            w_new = np.minimum(1.0, cfg.robust_c / np.maximum(np.abs(z), 1e-300))
+            if np.max(np.abs(w_new - weights)) < 1e-3:
+                break
+            weights = w_new
+            res = lm_solve(model, best.x, raw_u, NoiseModel(noise.var_axis / weights[:, None], noise.floor2),
+                           prior, temp, t_s, cfg)
+            if res.success or not best.success:
+                best = res
+
     # uncertainty (sigma at the estimate)
     sigma = noise(best.x)[0]
-    jw = best.jac / sigma[:, None]
-    rw = best.fun / sigma
+    z = best.fun / sigma
+    inlier = np.abs(z) <= cfg.reject_z if robust else np.ones(len(z), dtype=bool)
+    info_w = np.where(inlier, weights, 0.0)
+    jw = best.jac / sigma[:, None] * np.sqrt(info_w)[:, None]
+    rw = z * np.sqrt(info_w)
     fisher = jw.T @ jw
     post0 = np.linalg.inv(fisher + lam_p)
     p_eff = float(np.trace(post0 @ fisher))
-    dof = max(len(raw_u) - p_eff, 1.0)
+    dof = max(int(inlier.sum()) - p_eff, 1.0)
     chi2_red = float(rw @ rw / dof)
     infl = max(1.0, chi2_red)
     cov_u = np.linalg.inv(fisher / infl + lam_p)
@@ -809,8 +835,91 @@ def fit_poses(
         message=best.message,
         initial_value=best_name,
         fit_ms=fit_ms,
-        extra={"starts_tried": tried},
+        extra={"starts_tried": tried, "weights": weights, "n_rejected": int((~inlier).sum())},
     )
+
+
+# --------------------------------------------------------------------------- noise scale
+
+
+def variance_components(model: ErrorModel, fit: "FitResult", poses: PoseData, floor_g: float,
+                        bounds: tuple[tuple[float, float], tuple[float, float]] = ((1.0, 400.0), (1.0, 10.0)),
+                        min_poses: int = 30) -> tuple[float, float]:
+    """Scale factors ``(c_floor, c_noise)`` of a pose's residual variance ``floor^2 + var_k``.
+
+    Method of moments on the fit's residuals: ``r_k^2 / (1 - h_k)`` (``h_k`` the
+    leverage, so that poses the fit bends to do not look quiet) is regressed on
+    ``[floor^2, var_k]`` with weights ``1/sigma_k^4`` and non-negative coefficients,
+    then clipped to ``bounds`` (by default never below the model: conservative).
+    ``var_k`` is each pose's noise variance as given (``sd^2 / count`` along gravity),
+    ``floor_g`` the shared floor the fit added. Poses beyond ``reject_z`` are left out.
+    Returns ``(1, 1)`` with fewer than ``min_poses`` poses.
+    """
+    from scipy.optimize import nnls
+
+    n = len(poses)
+    if n < min_poses:
+        return 1.0, 1.0
+    mean_u = fit.normalizer.to_u(poses.mean)
+    norm = np.linalg.norm(mean_u, axis=1, keepdims=True)
+    ghat = mean_u / norm
+    sd = poses.sd if poses.sd is not None else np.zeros_like(mean_u)
+    var = np.sum(ghat**2 * (sd / fit.normalizer.scale) ** 2, axis=1) / poses.count
+    f2 = floor_g**2
+    sig2 = var + f2
+    r, jac = model.residual_jac(fit.theta_u, mean_u, poses.temp_c, poses.t_s)
+    jw = jac / np.sqrt(sig2)[:, None]
+    h = np.einsum("ij,jk,ik->i", jw, fit.cov_u, jw)
+    keep = np.abs(r) / np.sqrt(sig2) <= FitConfig().reject_z
+    if keep.sum() < min_poses:
+        return 1.0, 1.0
+    y = r[keep] ** 2 / np.clip(1.0 - h[keep], 0.05, 1.0)
+    x = np.column_stack([np.full(int(keep.sum()), f2), var[keep]])
+    w = 1.0 / sig2[keep]
+    coef, _ = nnls(x * w[:, None], y * w)
+    c0 = float(np.clip(coef[0], *bounds[0]))
+    c1 = float(np.clip(coef[1], *bounds[1]))
+    return c0, c1
+
+
+# --------------------------------------------------------------------------- sphere
+
+
+def sphere_directions(n: int = 2000) -> np.ndarray:
+    """Quasi-uniform unit directions (Fibonacci sphere), shape (n, 3)."""
+    i = np.arange(n) + 0.5
+    zc = 1 - 2 * i / n
+    r = np.sqrt(1 - zc * zc)
+    phi = np.pi * (1 + 5**0.5) * i
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), zc])
+
+
+def sphere_jacobian(model: ErrorModel, theta_u: np.ndarray, t_s: float | None = None, n_dirs: int = 256) -> np.ndarray:
+    """Jacobian (n_dirs, p) of the calibrated norm over the whole sphere.
+
+    Rows: directions spread over the sphere, taken to raw readings through the model's
+    own linear part, at the reference temperature and at time ``t_s`` (default the
+    model's time origin).
+    """
+    dirs = sphere_directions(n_dirs)
+    matrix, offset = model.linear(np.asarray(theta_u, dtype=float))
+    raw = dirs @ np.linalg.inv(matrix).T + offset
+    temp = np.full(n_dirs, model.temp_ref_c)
+    tt = np.full(n_dirs, model.t_ref_s if t_s is None else float(t_s))
+    return model.residual_jac(theta_u, raw, temp, tt)[1]
+
+
+def predicted_sphere_rms_mg(model: ErrorModel, theta_u: np.ndarray, cov_u: np.ndarray,
+                            t_s: float | None = None, n_dirs: int = 256) -> float:
+    """Calibrated-norm RMS error over the whole sphere (mg) that a covariance predicts.
+
+    ``sqrt(mean_d J_d cov J_d^T)``: the norm error of a calibrated reading, averaged over
+    gravity directions spread on the sphere, at the reference temperature (normalised
+    units, ~g; ``cov_u`` (p, p)).
+    """
+    jac = sphere_jacobian(model, theta_u, t_s, n_dirs)
+    var = np.einsum("ij,jk,ik->i", jac, np.asarray(cov_u, dtype=float), jac)
+    return float(np.sqrt(max(float(np.mean(var)), 0.0)) * 1e3)
 
 
 # --------------------------------------------------------------------------- guard

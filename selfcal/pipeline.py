@@ -41,6 +41,7 @@ class CalibrationRun:
     n_windows: int
     events: list[dict]
     notes: list[str]
+    unit: str = "g"
 
 
 def _rough_counts_normalizer(acc: np.ndarray) -> Normalizer:
@@ -180,7 +181,11 @@ def calibrate_recording(
             bar.close()
     else:  # poses table
         poses, normalizer, notes = recording_poses(rec, config)
-        cal = OnlineCalibrator(config, model)
+        try:
+            rate = float(rec.meta.get("rate_hz", 0) or 0)
+        except ValueError:
+            rate = 0.0
+        cal = OnlineCalibrator(_detector_config(config, rate, False) if rate > 0 else config, model)
         sd_u = None if poses["sd"] is None else poses["sd"] / normalizer.scale
         events = cal.feed_poses(normalizer.to_u(poses["mean"]), sd_u, poses["count"], poses["t_s"], poses["temp_c"])
         events += cal.flush()
@@ -194,6 +199,7 @@ def calibrate_recording(
         n_windows=n_windows,
         events=events,
         notes=notes,
+        unit=rec.unit,
     )
 
 
@@ -202,20 +208,27 @@ def to_raw_calibration(cal: OnlineCalibrator, normalizer: Normalizer, unit: str)
     cur = cal.calibration()
     if cur is None:
         return None
-    model: ErrorModel = cal.model
-    theta_u = np.asarray(cal.current["theta_u"], dtype=float)
-    cov_u = np.asarray(cal.current["cov_u"], dtype=float)
-    params = normalizer.theta_to_raw(model, theta_u)
-    cov = normalizer.cov_to_raw(model, cov_u)
-    matrix, offset = model.linear(params)
+    return version_in_unit(cur, cal.model, normalizer, unit)
+
+
+def version_in_unit(calibration: dict, model: ErrorModel, normalizer: Normalizer, unit: str) -> dict:
+    """A published calibration (normalised units, ~g) expressed in the recording's unit.
+
+    ``params``, ``std``, ``crlb_std``, ``matrix`` and ``offset`` are converted;
+    ``predicted_sphere_rms_mg`` is in mg of the calibrated output and is unchanged.
+    """
     names = model.param_names
-    out = dict(cur)
+    theta_u = model.from_dict(calibration["params"])
+    f = normalizer.param_scale(model)
+    params = normalizer.theta_to_raw(model, theta_u)
+    matrix, offset = model.linear(params)
+    out = dict(calibration)
     out["unit"] = unit
     out["params"] = model.to_dict(params)
-    out["std"] = {n: float(s) for n, s in zip(names, np.sqrt(np.maximum(np.diag(cov), 0)))}
-    if isinstance(cur.get("crlb_std"), dict):
-        f = dict(zip(names, normalizer.param_scale(model)))
-        out["crlb_std"] = {k: (None if v is None else float(v) * f[k]) for k, v in cur["crlb_std"].items()}
+    out["std"] = {n: float(calibration["std"][n]) * float(k) for n, k in zip(names, f)}
+    if isinstance(calibration.get("crlb_std"), dict):
+        fd = dict(zip(names, f))
+        out["crlb_std"] = {k: (None if v is None else float(v) * fd[k]) for k, v in calibration["crlb_std"].items()}
     out["matrix"] = matrix.tolist()
     out["offset"] = offset.tolist()
     out["normalizer"] = {"center": list(normalizer.center), "scale": normalizer.scale}

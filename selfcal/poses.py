@@ -1,59 +1,88 @@
-"""Pose buffer: a bounded, diverse set of still poses, and what they determine.
+"""Pose store: a compressed but complete history of still poses, as sufficient statistics.
 
-Policy (documented in the README):
+The online calibrator refits *all* of a device's still poses at every refit (one MAP
+problem, re-linearised each time), so nothing may be thrown away and memory must stay
+bounded. The store keeps one **cell** per (gravity-direction cell x temperature band x
+time block): the still windows that fall in it are summed into sufficient statistics,
+and the cell is fitted as one pose.
 
-* **Diversity** — the distance between two poses is
-  ``gamma = sqrt((angle / merge_angle_deg)^2 + (dT / merge_temp_c)^2)`` (the angle
-  between their gravity directions; the temperature term only when both have one, so
-  that the same orientation at another temperature is kept: it is what reveals a
-  temperature effect). A new pose with ``gamma < 1`` to a stored one *replaces* it:
-  the newest observation of a direction wins, which tracks a drifting sensor. If the
-  stored pose is recent (``pool_within_s``) and not yet absorbed into the published
-  model, the two are *pooled* instead (n-weighted mean, pooled sd), so a long still
-  split into several windows counts as one pose with all its samples. A repeat of a
-  pose already absorbed less than ``refresh_s`` ago replaces it but is marked absorbed:
-  its information is already in the model, and what repeats share (systematic error)
-  does not average down. After ``refresh_s`` a repeat counts again, so slow drifts
-  are still tracked.
-* **Bound** — when the buffer holds ``max_poses``, the most redundant pose goes: of the
-  closest pair (smallest gamma), the older one. Isolated poses (the rare shoe-on-its-
-  side) are never the ones evicted while redundant ones remain: coverage is preserved.
-* **Held-out** — every pose gets a serial id; ids that are multiples of
-  ``guard.heldout_every`` are held out of fitting and used by the guard. Once a
-  publication has been validated on them they are *validated* and become training
-  poses for the next refit, so no pose's information is lost.
-* **Absorbed** — a pose whose information is already in the published model's
-  posterior is marked absorbed, so that a sequential update does not count it twice.
-* **Split** — the insole paper's axis-aligned poses (``O_cor``) and the rest
-  (``O_train``) are available as masks.
+* **Direction cell**: the unit direction rounded on a grid of step
+  ``merge_angle_deg`` (in radians); **temperature band**: ``merge_temp_c`` wide (windows
+  without a temperature share one band); **time block**: ``block_s`` long.
+* **Representative pose** of a cell: its mean direction scaled to its mean raw norm.
+  A raw vector's norm, not the mean vector, is averaged: averaging vectors of
+  different directions would shorten the norm (a 3 deg spread costs up to 1.4 mg).
+* **Noise of a cell** (what the fit weighs it by): the per-window noise is the
+  detector's, projected on gravity: white sensor noise (per-axis sd up to
+  ``white_sd_g``) averages as ``sd^2 / n``; scatter above it is slow motion (sway) with
+  one independent value per ``motion_corr_s`` (measured on the simulator: windows of
+  20-40 mg scatter have mean errors of 5 mg, 18x what ``sd / sqrt(n)`` says). That is combined with the cell's own scatter
+  of window norms about a plane in direction (so the anisotropy of the raw sensor is not
+  counted as noise), with ``prior_dof`` pseudo-windows of the former. That is divided
+  by the number of windows, and a **systematic floor** is added once per cell
+  (``fit.sigma_floor_g``, in the fit): repeats of one pose in one block share their
+  systematic error and do not average it down. Older cells also get the process-noise
+  variance for their age (the sensor may have drifted since).
+* **Gate** (model-free): a window whose raw norm is far from the raw norm of its own
+  cell (``gate_k`` x the cell's scatter, and at least ``gate_abs_g``) is not pooled; it
+  goes into an *outlier twin* of the cell, kept and fitted (with the robust loss), so
+  that one bad "still" window cannot bias a cell of good ones. No model is involved:
+  the gate that admits poses never depends on the model they could refute.
+* **Bound**: at most ``max_cells`` cells. Past it, the oldest half of the time range is
+  coarsened (pairs of blocks merged, exactly: the statistics are sums); if that is not
+  enough, the oldest cells are dropped (counted in ``n_dropped``).
+* **Folds**: every cell has a fold ``hash(key) % folds`` for the guard's rotating
+  held-out split (a cell that is coarsened may change fold).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import base64
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from selfcal.fit import PoseData, axis_aligned_mask
+from selfcal.fit import PoseData
+
+# columns of the statistics table
+_NW, _NS = 0, 1  # windows, samples
+_SU = slice(2, 5)  # sum of unit directions
+_SUU = slice(5, 11)  # sum of u u^T (xx, xy, xz, yy, yz, zz)
+_SD = 11  # sum of d = |x| - 1
+_SDU = slice(12, 15)  # sum of d u
+_SDD = 15  # sum of d^2
+_SVN = 16  # sum of the detector's window-mean noise variance along gravity, g^2
+_ST = 17  # sum of window centre times, s
+_STEMP = 18  # sum of temperatures (windows with one)
+_NTEMP = 19  # windows with a temperature
+N_STATS = 20
+_UU_IDX = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+_NO_TEMP_BAND = 1023
 
 
 class PoseConfig(BaseModel):
-    """The ``[poses]`` section."""
+    """The ``[poses]`` section: cells of the pose store."""
 
     model_config = ConfigDict(extra="forbid")
 
-    max_poses: int = Field(240, ge=8, description="buffer size bound")
-    merge_angle_deg: float = Field(3.0, gt=0, description="poses closer than this (and merge_temp_c) are one pose, deg")
-    merge_temp_c: float = Field(2.0, gt=0, description="temperature scale of the diversity distance, degC")
-    refresh_s: float = Field(
-        86400.0, ge=0,
-        description="a repeat of an absorbed pose within this time carries no new information (systematic errors do not average down), s",
-    )
-    pool_within_s: float = Field(
-        600.0, ge=0, description="a repeat of a pose not yet absorbed and this recent is pooled with it (n-weighted), s"
-    )
+    max_cells: int = Field(6000, ge=16, description="bound on stored cells (memory and refit time)")
+    merge_angle_deg: float = Field(3.0, ge=0.5, le=20, description="direction-cell size, deg")
+    merge_temp_c: float = Field(2.0, gt=0, description="temperature-band width, degC")
+    block_s: float = Field(3600.0, gt=0, description="time-block length, s")
+    white_sd_g: float = Field(
+        0.004, gt=0, description="per-axis sample sd up to which a window's scatter is taken as white sensor noise, g")
+    motion_corr_s: float = Field(
+        0.6, gt=0, description="scatter above white_sd_g is slow motion: one independent value per this many s")
+    window_floor_g: float = Field(
+        3e-4, ge=0, description="independent error of every window mean (what the noise does not explain), g")
+    prior_dof: float = Field(3.0, ge=0, description="weight (in windows) of the detector's noise against a cell's own scatter")
+    gate_k: float = Field(8.0, gt=0, description="a window this many scatter sds off its cell's norm goes to the outlier twin")
+    gate_abs_g: float = Field(0.01, gt=0, description="...and at least this far off, g")
+    gate_min_windows: int = Field(3, ge=2, description="gate only cells with at least this many windows")
+    folds: int = Field(5, ge=2, description="held-out folds of the guard (cell key hash modulo folds)")
     axis_tol_g: float = Field(0.12, gt=0, description="axis-aligned (O_cor) tolerance, g")
     cube_g: float = Field(0.3, gt=0, description="GGIR-style coverage: both sides of +-cube_g on every axis")
 
@@ -63,255 +92,363 @@ class PoseConfig(BaseModel):
         return cls(**(section or {}))
 
 
-_FIELDS = ("mean", "sd", "count", "t_s", "temp_c", "pose_id", "absorbed", "validated", "absorbed_at")
+def _enc(a: np.ndarray) -> str:
+    return base64.b64encode(np.ascontiguousarray(a, dtype="<f8").tobytes()).decode("ascii")
+
+
+def _dec(s: str, shape_tail: tuple[int, ...] = ()) -> np.ndarray:
+    a = np.frombuffer(base64.b64decode(s), dtype="<f8").astype(float)
+    return a.reshape((-1,) + shape_tail)
+
+
+def _fold_of(keys: np.ndarray, folds: int) -> np.ndarray:
+    """Deterministic fold of each cell key (a multiplicative hash)."""
+    h = (keys.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(33)
+    return (h % np.uint64(folds)).astype(np.int64)
+
+
+def window_noise_var(u: np.ndarray, sd_g: np.ndarray, count: np.ndarray, rate_hz: float, cfg: PoseConfig) -> np.ndarray:
+    """Variance (g^2) of each still window's mean along gravity, shape (k,).
+
+    ``u`` (k, 3) unit gravity directions, ``sd_g`` (k, 3) per-axis sample sd (g),
+    ``count`` (k,) samples. White sensor noise (per-axis sd up to ``cfg.white_sd_g``)
+    averages as ``1/n``; scatter above it is slow motion, one independent value per
+    ``cfg.motion_corr_s`` of the window's ``count / rate_hz`` s.
+    """
+    var_axis = np.asarray(sd_g, dtype=float) ** 2
+    white = np.minimum(var_axis, cfg.white_sd_g**2)
+    motion = var_axis - white
+    count = np.asarray(count, dtype=float)
+    duration = np.maximum(count / rate_hz, cfg.motion_corr_s)
+    per_axis = white / count[:, None] + motion * (cfg.motion_corr_s / duration)[:, None]
+    return np.einsum("ij,ij->i", u * u, per_axis)
 
 
 @dataclass
-class PoseBuffer:
-    """Bounded, diverse store of still poses (means in g).
+class PoseStore:
+    """Bounded store of still-pose cells (normalised units, ~g).
 
-    Arrays (length m = number of stored poses): ``mean (m,3) g``, ``sd (m,3) g``,
-    ``count (m,)``, ``t_s (m,) s`` (window centre), ``temp_c (m,) degC`` (NaN if
-    unknown), ``pose_id (m,) int``, ``absorbed (m,) bool``.
+    Arrays (length m = number of cells): ``key (m,) int64`` (direction, band, block,
+    level, outlier flag), ``stats (m, 20)`` sums (see the module docstring),
+    ``t_first (m,) s`` and ``t_last (m,) s`` (first and last window time).
     """
 
     config: PoseConfig
-    mean: np.ndarray
-    sd: np.ndarray
-    count: np.ndarray
-    t_s: np.ndarray
-    temp_c: np.ndarray
-    pose_id: np.ndarray
-    absorbed: np.ndarray
-    validated: np.ndarray
-    absorbed_at: np.ndarray
-    next_id: int = 1
+    key: np.ndarray
+    stats: np.ndarray
+    t_first: np.ndarray
+    t_last: np.ndarray
     n_seen: int = 0
-    n_replaced: int = 0
-    n_evicted: int = 0
+    n_gated: int = 0
+    n_merged: int = 0
+    n_dropped: int = 0
+    _index: dict = field(default_factory=dict, repr=False)
 
     @classmethod
-    def empty(cls, config: PoseConfig | None = None) -> "PoseBuffer":
-        """A buffer with no pose."""
-        return cls(
-            config or PoseConfig(),
-            np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0),
-            np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool), np.zeros(0),
-        )
+    def empty(cls, config: PoseConfig | None = None) -> "PoseStore":
+        """A store with no cell."""
+        return cls(config or PoseConfig(), np.zeros(0, np.int64), np.zeros((0, N_STATS)), np.zeros(0), np.zeros(0))
 
     def __len__(self) -> int:
-        return self.mean.shape[0]
+        return int(self.key.shape[0])
 
-    # ------------------------------------------------------------------ distance
-    def _units(self) -> np.ndarray:
-        """Unit directions of the stored poses (m, 3), cached between calls."""
-        u = self.__dict__.get("_unit_cache")
-        if u is None or u.shape[0] != len(self):
-            u = self.mean / np.linalg.norm(self.mean, axis=1, keepdims=True)
-            self.__dict__["_unit_cache"] = u
-        return u
+    def _reindex(self) -> None:
+        self._index = {int(k): i for i, k in enumerate(self.key)}
 
-    def _gamma(self, mean: np.ndarray, temp_c: float) -> np.ndarray:
-        """Diversity distance of one pose (3,) to every stored pose, (m,)."""
-        if len(self) == 0:
-            return np.zeros(0)
-        u = mean / np.sqrt(mean @ mean)
-        ang = np.degrees(np.arccos(np.clip(self._units() @ u, -1.0, 1.0)))
-        g2 = (ang / self.config.merge_angle_deg) ** 2
-        if np.isfinite(temp_c):
-            dt = (self.temp_c - temp_c) / self.config.merge_temp_c
-            g2 += np.where(np.isfinite(dt), dt * dt, 0.0)
-        return g2  # squared distance: compared with 1
+    # ------------------------------------------------------------------ keys
+    def _keys(self, u: np.ndarray, temp: np.ndarray, t_s: np.ndarray, outlier: np.ndarray | None = None) -> np.ndarray:
+        """Cell keys of windows (level 0)."""
+        step = np.radians(self.config.merge_angle_deg)
+        g = np.rint(u / step).astype(np.int64) + 64  # 0..128 for step >= ~0.9 deg
+        band = np.where(np.isfinite(temp), np.floor(np.nan_to_num(temp) / self.config.merge_temp_c), 0).astype(np.int64)
+        band = np.where(np.isfinite(temp), np.clip(band + 512, 0, _NO_TEMP_BAND - 1), _NO_TEMP_BAND)
+        block = np.floor(t_s / self.config.block_s).astype(np.int64) + (1 << 20)
+        key = ((block * 1024 + band) * 256 + g[:, 0]) * 256 + g[:, 1]
+        key = (key * 256 + g[:, 2]) * 32  # 5 low bits: level (4) and outlier flag (1)
+        if outlier is not None:
+            key = key + outlier.astype(np.int64)
+        return key
 
-    def _pairwise_gamma(self) -> np.ndarray:
-        stored = self._units()
-        ang = np.degrees(np.arccos(np.clip(stored @ stored.T, -1.0, 1.0)))
-        dt = np.abs(self.temp_c[:, None] - self.temp_c[None, :])
-        g2 = (ang / self.config.merge_angle_deg) ** 2 + np.where(
-            np.isfinite(dt), (dt / self.config.merge_temp_c) ** 2, 0.0
-        )
-        g = np.sqrt(g2)
-        np.fill_diagonal(g, np.inf)
-        return g
+    @staticmethod
+    def _level(key: np.ndarray) -> np.ndarray:
+        return (key >> 1) & 15
+
+    # ------------------------------------------------------------------ cell views
+    def _derived(self, rows: np.ndarray | slice | None = None):
+        """(mean direction (k,3), mean d (k,), per-window noise variance (k,), scatter dof (k,))."""
+        s = self.stats if rows is None else self.stats[rows]
+        nw = s[:, _NW]
+        su = s[:, _SU]
+        ubar = su / nw[:, None]
+        dbar = s[:, _SD] / nw
+        cuu = np.empty((len(s), 3, 3))
+        for c, (i, j) in enumerate(_UU_IDX):
+            cuu[:, i, j] = cuu[:, j, i] = s[:, _SUU.start + c] / nw - ubar[:, i] * ubar[:, j]
+        cdu = s[:, _SDU] / nw[:, None] - dbar[:, None] * ubar
+        cdd = s[:, _SDD] / nw - dbar**2
+        # regression of the norm on the direction (the raw sensor's anisotropy within a cell
+        # is not noise): residual variance = cdd - cdu^T cuu^+ cdu
+        evals, evecs = np.linalg.eigh(cuu)
+        keep = evals > 1e-9  # direction spread above (3e-5 rad)^2
+        proj = np.einsum("kij,ki->kj", evecs, cdu)
+        explained = np.sum(np.where(keep, proj**2 / np.where(keep, evals, 1.0), 0.0), axis=1)
+        ssr = np.maximum(cdd - explained, 0.0) * nw
+        dof = np.maximum(nw - 1.0 - keep.sum(axis=1), 0.0)
+        v_model = s[:, _SVN] / nw
+        nu0 = self.config.prior_dof
+        v_emp = np.where(dof > 0, ssr / np.maximum(dof, 1.0), 0.0)
+        v_win = np.where(nu0 + dof > 0, (nu0 * v_model + dof * v_emp) / np.maximum(nu0 + dof, 1e-12), v_model)
+        direction = su / np.linalg.norm(su, axis=1, keepdims=True)
+        return direction, dbar, v_win, dof
 
     # ------------------------------------------------------------------ updates
-    def add(self, mean_g, sd_g, count, t_s, temp_c=None) -> dict[str, int]:
-        """Add still windows (one loop step per window, O(m) numpy work each).
+    def add(self, mean_g, sd_g, count, t_s, temp_c=None, rate_hz: float = 20.0) -> dict[str, int]:
+        """Add still windows (normalised units, ~g).
 
         Parameters
         ----------
-        mean_g, sd_g : ndarray, shape (k, 3), g
-        count : ndarray, shape (k,)
-        t_s : ndarray, shape (k,), s
+        mean_g, sd_g : ndarray, shape (k, 3), g — window means and per-axis sample sds
+            (sd may be None: ``default_sd_g`` of the fit is then used by the caller)
+        count : ndarray, shape (k,) — samples per window
+        t_s : ndarray, shape (k,), s — window centre times
         temp_c : ndarray, shape (k,), degC, or None
+        rate_hz : float — sample rate, Hz (a window lasts ``count / rate_hz`` s)
 
         Returns
         -------
-        dict with ``added``, ``replaced``, ``evicted`` counts and ``new_info``: the
-        windows that brought information not yet in the published model.
+        dict with ``added`` (windows stored), ``new_cells``, ``gated`` and ``new_info``
+        (new cells, the unit the scheduler counts).
         """
-        mean_g = np.atleast_2d(np.asarray(mean_g, dtype=float))
-        k = mean_g.shape[0]
-        sd_g = np.broadcast_to(np.asarray(sd_g, dtype=float), (k, 3)) if sd_g is not None else np.full((k, 3), np.nan)
-        count = np.broadcast_to(np.asarray(count, dtype=float), (k,)).tolist()
-        t_s = np.broadcast_to(np.asarray(t_s, dtype=float), (k,)).tolist()
-        temp = (np.full(k, np.nan) if temp_c is None else np.broadcast_to(np.asarray(temp_c, dtype=float), (k,))).tolist()
-        valid = np.all(np.isfinite(mean_g), axis=1) & (np.einsum("ij,ij->i", mean_g, mean_g) > 0)
-        stats = {"added": 0, "replaced": 0, "evicted": 0, "new_info": 0}
-        for i in range(k):
-            if not valid[i]:
-                continue
-            self.n_seen += 1
-            row = (mean_g[i], sd_g[i], count[i], t_s[i], temp[i], self.next_id, False, False, np.nan)
-            self.next_id += 1
-            gamma2 = self._gamma(mean_g[i], temp[i])
-            j = int(np.argmin(gamma2)) if gamma2.size else -1
-            if j >= 0 and gamma2[j] < 1.0:
-                if not self.absorbed[j] and abs(t_s[i] - self.t_s[j]) <= self.config.pool_within_s:
-                    self._pool(j, mean_g[i], sd_g[i], count[i], t_s[i], temp[i])
-                    stats["replaced"] += 1
-                    stats["new_info"] += 1
-                    continue
-                absorbed_at = self.absorbed_at[j]
-                repeat_of_absorbed = self.absorbed[j] and abs(t_s[i] - absorbed_at) <= self.config.refresh_s
-                for name, value in zip(_FIELDS, row):
-                    getattr(self, name)[j] = value
-                if repeat_of_absorbed:
-                    # same orientation, recently absorbed: keep the newest reading (for the
-                    # guard and the detector), but do not count its information again
-                    self.absorbed[j] = True
-                    self.absorbed_at[j] = absorbed_at
-                else:
-                    stats["new_info"] += 1
-                self._units()[j] = mean_g[i] / np.sqrt(mean_g[i] @ mean_g[i])
-                self.n_replaced += 1
-                stats["replaced"] += 1
-                continue
-            for name, value in zip(_FIELDS, row):
-                arr = getattr(self, name)
-                setattr(self, name, np.concatenate([arr, np.asarray([value], dtype=arr.dtype).reshape((1,) + arr.shape[1:])]))
-            stats["added"] += 1
-            stats["new_info"] += 1
-            self.__dict__.pop("_unit_cache", None)
-            if len(self) > self.config.max_poses:
-                self._evict_one()
-                stats["evicted"] += 1
-        return stats
-
-    def _pool(self, j: int, mean, sd, count, t_s, temp) -> None:
-        """Pool a repeat of pose ``j`` into it (n-weighted; sd includes the spread of the means)."""
-        n1, n2 = self.count[j], count
-        n = n1 + n2
-        m = (n1 * self.mean[j] + n2 * mean) / n
-        var = (n1 * (self.sd[j] ** 2 + (self.mean[j] - m) ** 2) + n2 * (sd**2 + (mean - m) ** 2)) / n
-        self.mean[j] = m
-        self._units()[j] = m / np.sqrt(m @ m)
-        self.sd[j] = np.sqrt(var)
-        self.count[j] = n
-        self.t_s[j] = (n1 * self.t_s[j] + n2 * t_s) / n
-        if np.isfinite(temp) and np.isfinite(self.temp_c[j]):
-            self.temp_c[j] = (n1 * self.temp_c[j] + n2 * temp) / n
-        self.n_replaced += 1
-
-    def _evict_one(self) -> None:
-        g = self._pairwise_gamma()
-        i, j = np.unravel_index(np.argmin(g), g.shape)
-        drop = i if self.t_s[i] < self.t_s[j] else j
-        keep = np.ones(len(self), dtype=bool)
-        keep[drop] = False
-        for name in _FIELDS:
-            setattr(self, name, getattr(self, name)[keep])
-        self.__dict__.pop("_unit_cache", None)
-        self.n_evicted += 1
-
-    def mark_absorbed(self, pose_ids: np.ndarray, t_s: float = np.nan) -> None:
-        """Mark poses as absorbed into the published model's posterior (at time ``t_s``)."""
-        new = np.isin(self.pose_id, pose_ids) & ~self.absorbed
-        self.absorbed |= new
-        self.absorbed_at[new] = t_s
-
-    def mark_validated(self, pose_ids: np.ndarray) -> None:
-        """Mark held-out poses as used once by the guard: from now on they are training poses."""
-        self.validated |= np.isin(self.pose_id, pose_ids)
-
-    # ------------------------------------------------------------------ views
-    def pose_data(self, mask: np.ndarray | None = None) -> PoseData:
-        """The stored poses (optionally a subset) as :class:`selfcal.fit.PoseData` in g."""
-        mask = np.ones(len(self), dtype=bool) if mask is None else mask
-        sd = self.sd[mask]
-        temp = self.temp_c[mask]
-        return PoseData(
-            self.mean[mask],
-            None if np.any(~np.isfinite(sd)) else sd,
-            self.count[mask],
-            self.t_s[mask],
-            temp if np.all(np.isfinite(temp)) and temp.size else None,
-        )
-
-    def heldout(self, every: int) -> np.ndarray:
-        """Held-out mask (m,) bool: pose ids that are multiples of ``every``."""
-        return (self.pose_id % every) == 0
-
-    def axis_aligned(self) -> np.ndarray:
-        """The insole paper's O_cor mask (m,) bool; ``~mask`` is O_train."""
-        if len(self) == 0:
-            return np.zeros(0, dtype=bool)
-        return axis_aligned_mask(self.mean, self.config.axis_tol_g)
-
-    def cube_coverage(self) -> dict[str, bool]:
-        """GGIR's rule: poses beyond both -cube_g and +cube_g on each axis."""
-        c = self.config.cube_g
-        out = {}
-        for i, ax in enumerate("xyz"):
-            v = self.mean[:, i] if len(self) else np.zeros(0)
-            out[f"{ax}_neg"] = bool(np.any(v < -c))
-            out[f"{ax}_pos"] = bool(np.any(v > c))
+        mean = np.atleast_2d(np.asarray(mean_g, dtype=float))
+        k = mean.shape[0]
+        count = np.broadcast_to(np.asarray(count, dtype=float), (k,)).astype(float)
+        t_s = np.broadcast_to(np.asarray(t_s, dtype=float), (k,)).astype(float)
+        temp = np.full(k, np.nan) if temp_c is None else np.broadcast_to(np.asarray(temp_c, dtype=float), (k,)).astype(float)
+        if sd_g is None:
+            sd = np.full((k, 3), 3e-3)
+        else:
+            sd = np.broadcast_to(np.asarray(sd_g, dtype=float), (k, 3)).astype(float)
+            sd = np.where(np.isfinite(sd), sd, 3e-3)
+        norm = np.sqrt(np.einsum("ij,ij->i", mean, mean)) if k else np.zeros(0)
+        valid = np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s) & (count >= 1)
+        out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0}
+        if not valid.any():
+            return out
+        mean, sd, count, t_s, temp, norm = mean[valid], sd[valid], count[valid], t_s[valid], temp[valid], norm[valid]
+        u = mean / norm[:, None]
+        d = norm - 1.0
+        vn = window_noise_var(u, sd, count, rate_hz, self.config) + self.config.window_floor_g**2
+        key = self._keys(u, temp, t_s)
+        if not self._index and len(self):
+            self._reindex()
+        # gate against the cells as they were before this batch (model-free)
+        rows = np.array([self._index.get(int(x), -1) for x in key], dtype=np.int64)
+        old = rows >= 0
+        gated = np.zeros(len(key), dtype=bool)
+        if old.any():
+            cand = rows[old]
+            enough = self.stats[cand, _NW] >= self.config.gate_min_windows
+            if enough.any():
+                _, dbar, v_win, _ = self._derived(cand)
+                thr = np.maximum(self.config.gate_k * np.sqrt(v_win), self.config.gate_abs_g)
+                off = np.abs(d[old] - dbar) > thr
+                g_idx = np.flatnonzero(old)[enough & off]
+                gated[g_idx] = True
+        if gated.any():
+            key = key + gated.astype(np.int64)
+        out["gated"] = int(gated.sum())
+        self.n_gated += out["gated"]
+        # accumulate per key
+        row = np.zeros((len(key), N_STATS))
+        row[:, _NW] = 1.0
+        row[:, _NS] = count
+        row[:, _SU] = u
+        for c, (i, j) in enumerate(_UU_IDX):
+            row[:, _SUU.start + c] = u[:, i] * u[:, j]
+        row[:, _SD] = d
+        row[:, _SDU] = d[:, None] * u
+        row[:, _SDD] = d * d
+        row[:, _SVN] = vn
+        row[:, _ST] = t_s
+        has_t = np.isfinite(temp)
+        row[:, _STEMP] = np.where(has_t, temp, 0.0)
+        row[:, _NTEMP] = has_t
+        ukeys, inv = np.unique(key, return_inverse=True)
+        sums = np.zeros((len(ukeys), N_STATS))
+        np.add.at(sums, inv, row)
+        tmin = np.full(len(ukeys), np.inf)
+        tmax = np.full(len(ukeys), -np.inf)
+        np.minimum.at(tmin, inv, t_s)
+        np.maximum.at(tmax, inv, t_s)
+        target = np.array([self._index.get(int(x), -1) for x in ukeys], dtype=np.int64)
+        exist = target >= 0
+        if exist.any():
+            t = target[exist]
+            self.stats[t] += sums[exist]
+            self.t_first[t] = np.minimum(self.t_first[t], tmin[exist])
+            self.t_last[t] = np.maximum(self.t_last[t], tmax[exist])
+        new = ~exist
+        if new.any():
+            start = len(self)
+            self.key = np.concatenate([self.key, ukeys[new]])
+            self.stats = np.vstack([self.stats, sums[new]])
+            self.t_first = np.concatenate([self.t_first, tmin[new]])
+            self.t_last = np.concatenate([self.t_last, tmax[new]])
+            for i, kk in enumerate(ukeys[new]):
+                self._index[int(kk)] = start + i
+        out["added"] = int(len(key))
+        out["new_cells"] = int(new.sum())
+        out["new_info"] = out["new_cells"]
+        self.n_seen += int(len(key))
+        if len(self) > self.config.max_cells:
+            self._bound()
         return out
 
+    def _bound(self) -> None:
+        """Coarsen the oldest half of the time range (merge block pairs), then drop if needed."""
+        for _ in range(8):
+            if len(self) <= self.config.max_cells:
+                return
+            t_mid = np.median(self.t_last)
+            old = (self.t_last <= t_mid) & (self._level(self.key) < 15)
+            if not old.any():
+                break
+            key = self.key.copy()
+            lvl = self._level(key[old])
+            flag = key[old] & 1
+            rest = key[old] >> 5  # (block, band, direction)
+            block = rest >> (10 + 24)
+            low = rest & ((1 << 34) - 1)
+            block = (block >> (lvl + 1)) << (lvl + 1)  # start of the doubled block
+            key[old] = ((((block << 34) | low) << 5) | ((lvl + 1) << 1) | flag)
+            self._merge_keys(key)
+        if len(self) > self.config.max_cells:  # still too many: drop the oldest cells
+            order = np.argsort(self.t_last, kind="stable")
+            drop = order[: len(self) - self.config.max_cells]
+            keep = np.ones(len(self), dtype=bool)
+            keep[drop] = False
+            self.n_dropped += int(drop.size)
+            self.key, self.stats = self.key[keep], self.stats[keep]
+            self.t_first, self.t_last = self.t_first[keep], self.t_last[keep]
+            self._reindex()
+
+    def _merge_keys(self, key: np.ndarray) -> None:
+        ukeys, inv = np.unique(key, return_inverse=True)
+        if len(ukeys) == len(key):
+            self.key = key
+            self._reindex()
+            return
+        stats = np.zeros((len(ukeys), N_STATS))
+        np.add.at(stats, inv, self.stats)
+        tf = np.full(len(ukeys), np.inf)
+        tl = np.full(len(ukeys), -np.inf)
+        np.minimum.at(tf, inv, self.t_first)
+        np.maximum.at(tl, inv, self.t_last)
+        self.n_merged += len(key) - len(ukeys)
+        self.key, self.stats, self.t_first, self.t_last = ukeys, stats, tf, tl
+        self._reindex()
+
+    # ------------------------------------------------------------------ views
+    def folds(self) -> np.ndarray:
+        """Fold of every cell (m,) int (from its key)."""
+        return _fold_of(self.key >> 5, self.config.folds)
+
+    def outlier_twin(self) -> np.ndarray:
+        """Cells holding windows the gate kept apart (m,) bool."""
+        return (self.key & 1).astype(bool)
+
+    def window_counts(self) -> np.ndarray:
+        """Windows per cell (m,)."""
+        return self.stats[:, _NW].copy()
+
+    def mean_temp(self) -> np.ndarray:
+        """Mean temperature of each cell (m,) degC (NaN if its windows had none)."""
+        nt = self.stats[:, _NTEMP]
+        return np.where(nt > 0, self.stats[:, _STEMP] / np.maximum(nt, 1), np.nan)
+
+    def pose_data(self, mask: np.ndarray | None = None, t_now_s: float | None = None,
+                  age_var_g2_per_day: float = 0.0) -> PoseData:
+        """The cells (optionally a subset) as poses to fit, :class:`selfcal.fit.PoseData`.
+
+        Each cell is one pose: its representative vector (mean direction x mean raw
+        norm, ~g), an effective per-axis sd whose projection on gravity is the
+        variance of the cell mean (``count = 1``), the mean window time and the mean
+        temperature. With ``t_now_s``, a cell of age ``A`` days gets
+        ``age_var_g2_per_day * A`` more variance (the sensor may have drifted).
+        The fit adds the systematic floor once per cell.
+        """
+        mask = np.ones(len(self), dtype=bool) if mask is None else np.asarray(mask)
+        rows = np.flatnonzero(mask) if mask.dtype == bool else mask
+        direction, dbar, v_win, _ = self._derived(rows)
+        s = self.stats[rows]
+        nw = s[:, _NW]
+        mean = direction * (1.0 + dbar)[:, None]
+        var = v_win / nw
+        t_mean = s[:, _ST] / nw
+        if t_now_s is not None and age_var_g2_per_day > 0:
+            var = var + age_var_g2_per_day * np.maximum(t_now_s - t_mean, 0.0) / 86400.0
+        sd = np.repeat(np.sqrt(var)[:, None], 3, axis=1)
+        temp = self.mean_temp()[rows]
+        return PoseData(mean, sd, np.ones(len(rows)), t_mean, temp if np.all(np.isfinite(temp)) and len(temp) else None)
+
+    def axis_aligned(self) -> np.ndarray:
+        """The insole paper's O_cor mask over cells (m,) bool."""
+        from selfcal.fit import axis_aligned_mask
+
+        if len(self) == 0:
+            return np.zeros(0, dtype=bool)
+        return axis_aligned_mask(self._derived()[0], self.config.axis_tol_g)
+
+    def cube_coverage(self) -> dict[str, bool]:
+        """GGIR's rule: cells beyond both -cube_g and +cube_g on each axis."""
+        c = self.config.cube_g
+        u = self._derived()[0] if len(self) else np.zeros((0, 3))
+        return {f"{ax}_{sgn}": bool(np.any(u[:, i] < -c) if sgn == "neg" else np.any(u[:, i] > c))
+                for i, ax in enumerate("xyz") for sgn in ("neg", "pos")}
+
     def summary(self) -> dict:
-        """Counts, time span and temperature range of the stored poses."""
-        temp = self.temp_c[np.isfinite(self.temp_c)] if len(self) else np.zeros(0)
+        """Counts, time span and temperature range of the stored cells."""
+        temp = self.mean_temp()
+        temp = temp[np.isfinite(temp)]
         return {
-            "n_poses": len(self),
+            "n_cells": len(self),
+            "n_windows": int(self.stats[:, _NW].sum()) if len(self) else 0,
             "n_seen": self.n_seen,
-            "n_replaced": self.n_replaced,
-            "n_evicted": self.n_evicted,
+            "n_gated": self.n_gated,
+            "n_outlier_cells": int(self.outlier_twin().sum()),
+            "n_merged": self.n_merged,
+            "n_dropped": self.n_dropped,
             "n_axis_aligned": int(self.axis_aligned().sum()),
-            "t_span_s": [float(self.t_s.min()), float(self.t_s.max())] if len(self) else None,
+            "t_span_s": [float(self.t_first.min()), float(self.t_last.max())] if len(self) else None,
             "temp_range_c": [float(temp.min()), float(temp.max())] if temp.size else None,
             "cube_coverage": self.cube_coverage(),
         }
 
     # ------------------------------------------------------------------ state
     def to_json(self) -> dict:
-        """JSON-serialisable state (exact: floats are written with repr precision)."""
+        """JSON-serialisable state; arrays as base64 little-endian float64 (exact, compact)."""
         return {
             "config": self.config.model_dump(),
-            "mean": self.mean.tolist(),
-            "sd": [[None if not np.isfinite(x) else float(x) for x in row] for row in self.sd],
-            "count": self.count.tolist(),
-            "t_s": self.t_s.tolist(),
-            "temp_c": [None if not np.isfinite(x) else float(x) for x in self.temp_c],
-            "pose_id": self.pose_id.tolist(),
-            "absorbed": self.absorbed.tolist(),
-            "validated": self.validated.tolist(),
-            "absorbed_at": [None if not np.isfinite(x) else float(x) for x in self.absorbed_at],
-            "next_id": self.next_id,
+            "key": self.key.tolist(),
+            "stats": _enc(self.stats),
+            "t_first": _enc(self.t_first),
+            "t_last": _enc(self.t_last),
             "n_seen": self.n_seen,
-            "n_replaced": self.n_replaced,
-            "n_evicted": self.n_evicted,
+            "n_gated": self.n_gated,
+            "n_merged": self.n_merged,
+            "n_dropped": self.n_dropped,
         }
 
     @classmethod
-    def from_json(cls, d: dict) -> "PoseBuffer":
+    def from_json(cls, d: dict) -> "PoseStore":
         """Inverse of :meth:`to_json`."""
-        def arr(x, shape_tail=()):
-            a = np.array([[np.nan if v is None else v for v in row] for row in x], dtype=float) if shape_tail else np.array(
-                [np.nan if v is None else v for v in x], dtype=float)
-            return a.reshape((-1,) + shape_tail)
-        return cls(
+        obj = cls(
             PoseConfig(**d["config"]),
-            arr(d["mean"], (3,)), arr(d["sd"], (3,)), arr(d["count"]), arr(d["t_s"]), arr(d["temp_c"]),
-            np.asarray(d["pose_id"], dtype=np.int64), np.asarray(d["absorbed"], dtype=bool),
-            np.asarray(d["validated"], dtype=bool), arr(d["absorbed_at"]), int(d["next_id"]), int(d["n_seen"]), int(d["n_replaced"]), int(d["n_evicted"]),
+            np.asarray(d["key"], dtype=np.int64).reshape(-1),
+            _dec(d["stats"], (N_STATS,)),
+            _dec(d["t_first"]),
+            _dec(d["t_last"]),
+            int(d["n_seen"]), int(d["n_gated"]), int(d["n_merged"]), int(d["n_dropped"]),
         )
+        obj._reindex()
+        return obj

@@ -43,20 +43,12 @@ import numpy as np
 from selfcal.attitude import roll_pitch_deg
 from selfcal.calibrator import OnlineCalibrator
 from selfcal.config import section
+from selfcal.fit import sphere_directions
 from selfcal.models import ErrorModel
 from selfcal.sim import SimConfig, Simulation, canonical_qr, sensor_mean
 
 SECONDS_PER_DAY = 86400.0
 BASE_NAMES = ErrorModel("affine9").param_names
-
-
-def sphere_directions(n: int = 2000) -> np.ndarray:
-    """Quasi-uniform unit directions (Fibonacci sphere), shape (n, 3)."""
-    i = np.arange(n) + 0.5
-    z = 1 - 2 * i / n
-    r = np.sqrt(1 - z * z)
-    phi = np.pi * (1 + 5**0.5) * i
-    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
 class TruthMetrics:

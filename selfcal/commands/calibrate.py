@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
+from pathlib import Path
 
 from selfcal.config import load_config
 from selfcal.errors import InputError
@@ -16,7 +18,38 @@ def add_arguments(parser) -> None:
     parser.add_argument("--model", default="affine9", help="error model (scale6, affine9, affine9+effect...)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     parser.add_argument("--out", metavar="CAL.json", help="write the calibration JSON here")
+    parser.add_argument("--history", metavar="FILE.jsonl",
+                        help="write every published version here, one calibration JSON a line, in time order")
     parser.add_argument("--progress", action="store_true", help="progress bar on stderr")
+
+
+def check_writable(path: str) -> None:
+    """Raise InputError unless ``path`` can be written (its directory must exist)."""
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{path}: is a directory, not a file")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(f"{path}: directory {str(parent)!r} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise InputError(f"{path}: directory {str(parent)!r} is not writable")
+
+
+def write_history(path: str, result) -> int:
+    """Write every published version of a run as JSON lines (recording unit); returns the count."""
+    from selfcal.pipeline import version_in_unit
+
+    n = 0
+    tmp = Path(path).with_name(Path(path).name + ".tmp")
+    with tmp.open("w", encoding="utf-8") as fh:
+        for ev in result.events:
+            if not ev.get("published") or ev.get("calibration") is None:
+                continue
+            c = version_in_unit(ev["calibration"], result.calibrator.model, result.normalizer, result.unit)
+            fh.write(json.dumps(c, separators=(",", ":")) + "\n")
+            n += 1
+    os.replace(tmp, path)
+    return n
 
 
 def run(args) -> int:
@@ -24,8 +57,13 @@ def run(args) -> int:
 
     ErrorModel(args.model)  # validate the name before reading anything
     cfg = load_config(args.config)
+    for target in (args.out, args.history):  # fail before the work, not after it
+        if target:
+            check_writable(target)
     rec = read_recording(args.recording)
     result = calibrate_recording(rec, args.model, cfg, progress=args.progress or sys.stderr.isatty())
+    if args.history:
+        write_history(args.history, result)
     out = {
         "recording": args.recording,
         "status": result.status,

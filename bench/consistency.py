@@ -1,0 +1,239 @@
+"""Consistency of the online calibrator, scored publication by publication against the truth.
+
+For each seed: ``selfcal simulate --days D --kind poses --effects E`` (in-process, the
+same code), then ``selfcal calibrate SIM.csv --model M --history H.jsonl``. Every
+version in the history is scored against the simulator's truth:
+
+* parameter errors in reported sds (``|est - true| / std``), every parameter;
+* true whole-sphere calibrated-norm RMS error (2000 directions, true sensor at the
+  reference temperature, at the version's time) against the version's
+  ``predicted_sphere_rms_mg``;
+* jumps: consecutive versions whose true error exceeds 1.5 x the previous + 0.5 mg;
+* versions per week; time to the first ``calibrated``;
+* the final error against the Cramér-Rao sphere error of the same week's poses: the
+  Fisher information of every still window at the truth (independent windows, each with
+  its own noise along gravity and the 0.3 mg floor) plus the datasheet prior,
+  propagated to the sphere exactly as ``predicted_sphere_rms_mg`` is.
+
+The acceptance figures (issue "Honest online estimation") are computed over the
+``calibrated`` versions pooled across seeds, and printed with PASS/FAIL.
+
+    python bench/consistency.py --seeds 0-9                       # effects none, affine9
+    python bench/consistency.py --seeds 100-104 --effects all     # each effect + its model
+    python bench/consistency.py --seeds 0-9 --json --markdown OUT.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import json
+import multiprocessing as mp
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from selfcal.fit import FitConfig, datasheet_prior, predicted_sphere_rms_mg, sphere_directions  # noqa: E402
+from selfcal.models import ErrorModel  # noqa: E402
+
+EFFECTS = ("temperature_bias", "temperature_scale", "time_drift_bias", "scale_nonlinearity")
+
+
+def _seeds(text: str) -> list[int]:
+    out: list[int] = []
+    for part in text.split(","):
+        if "-" in part:
+            a, b = part.split("-")
+            out += list(range(int(a), int(b) + 1))
+        elif part.strip():
+            out.append(int(part))
+    return out
+
+
+def crlb_sphere_mg(model: ErrorModel, truth_u: np.ndarray, rec, t_s: float) -> float:
+    """Cramér-Rao whole-sphere error (mg) of a poses recording, with the datasheet prior."""
+    from selfcal.poses import PoseConfig, window_noise_var
+
+    cfg = FitConfig()
+    a = model.apply(truth_u, rec.acc, rec.temp_c, rec.t_s)
+    u = a / np.linalg.norm(a, axis=1, keepdims=True)
+    rate = float(rec.meta.get("rate_hz", 20.0))
+    sd = rec.sd if rec.sd is not None else np.full_like(rec.acc, cfg.default_sample_sd_g)
+    var = window_noise_var(u, sd, rec.n, rate, PoseConfig()) + cfg.sigma_floor_g**2
+    _, jac = model.residual_jac(truth_u, rec.acc, rec.temp_c, rec.t_s)
+    jw = jac / np.sqrt(var)[:, None]
+    prior = datasheet_prior(model, cfg)
+    cov = np.linalg.inv(jw.T @ jw + prior.precision())
+    return predicted_sphere_rms_mg(model, truth_u, cov, t_s)
+
+
+def run_one(job: dict) -> dict:
+    """Simulate, calibrate with --history, score. ``job``: seed, days, effect, model, tmp."""
+    from selfcal.cli import main as cli_main
+    from selfcal.io import read_recording
+    from selfcal.sim.sensor import SensorTruth, sensor_mean
+
+    seed, days, effect, model_name = job["seed"], job["days"], job["effect"], job["model"]
+    tmp = Path(job["tmp"])
+    rec_path = tmp / f"sim-{effect}-{seed}.csv"
+    hist_path = tmp / f"hist-{effect}-{seed}.jsonl"
+    t0 = time.perf_counter()
+    argv = ["simulate", "--days", str(days), "--kind", "poses", "--effects", effect, "--seed", str(seed),
+            "--out", str(rec_path)]
+    with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
+        ok = cli_main(argv) == 0
+    if not ok:
+        raise RuntimeError(f"simulate failed: {argv}")
+    t_sim = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
+        code = cli_main(["calibrate", str(rec_path), "--model", model_name, "--history", str(hist_path), "--json"])
+    t_cal = time.perf_counter() - t0
+    truth_d = json.loads(rec_path.with_name(rec_path.name[:-4] + ".truth.json").read_text())
+    sensor = SensorTruth.from_dict(truth_d)
+    model = ErrorModel(model_name, truth_d["temp_ref_c"], 0.0)
+    truth_u = model.from_dict({**truth_d["params"],
+                               **{k: v for k, v in truth_d["effect_params"].items() if k in model.param_names}})
+    dirs = sphere_directions(2000)
+    versions = []
+    for line in hist_path.read_text().splitlines() if hist_path.exists() else []:
+        c = json.loads(line)
+        theta = model.from_dict(c["params"])
+        std = np.array([c["std"][n] for n in model.param_names])
+        temp = np.full(len(dirs), sensor.temp_ref_c)
+        tt = np.full(len(dirs), float(c["t_s"]))
+        raw = sensor_mean(sensor, dirs, temp, tt)
+        a = model.apply(theta, raw, temp, tt)
+        true_mg = float(np.sqrt(np.mean((np.linalg.norm(a, axis=1) - 1) ** 2)) * 1e3)
+        versions.append({
+            "version": c["version"], "t_s": c["t_s"], "status": c["status"], "true_mg": true_mg,
+            "predicted_mg": c["predicted_sphere_rms_mg"], "z": ((theta - truth_u) / std).tolist(),
+        })
+    rec = read_recording(rec_path)
+    last_t = versions[-1]["t_s"] if versions else float(rec.t_s[-1])
+    crlb = crlb_sphere_mg(model, truth_u, rec, last_t)
+    for p in tmp.glob(f"*-{effect}-{seed}*"):
+        p.unlink()
+    return {"seed": seed, "effect": effect, "model": model_name, "days": days, "exit_code": code,
+            "versions": versions, "crlb_sphere_mg": crlb, "n_poses": len(rec), "sim_s": t_sim, "calibrate_s": t_cal}
+
+
+def score(runs: list[dict]) -> dict:
+    """Pooled acceptance figures over the calibrated versions of ``runs``."""
+    zs, ratio_ok, jumps, pairs = [], [], 0, 0
+    per_seed = []
+    for r in runs:
+        cal = [v for v in r["versions"] if v["status"] == "calibrated"]
+        for v in cal:
+            zs.extend(np.abs(v["z"]))
+            ratio_ok.append(v["true_mg"] <= 2.5 * v["predicted_mg"] + 0.05)
+        for a, b in zip(cal, cal[1:]):
+            pairs += 1
+            jumps += b["true_mg"] > 1.5 * a["true_mg"] + 0.5
+        final = r["versions"][-1] if r["versions"] else None
+        target = max(0.5, 2 * r["crlb_sphere_mg"])
+        weeks = r["days"] / 7.0
+        per_seed.append({
+            "seed": r["seed"], "effect": r["effect"], "versions": len(r["versions"]),
+            "versions_per_week": len(r["versions"]) / weeks, "calibrated_versions": len(cal),
+            "first_calibrated_h": cal[0]["t_s"] / 3600 if cal else None,
+            "final_status": final["status"] if final else None,
+            "final_true_mg": final["true_mg"] if final else None,
+            "final_predicted_mg": final["predicted_mg"] if final else None,
+            "crlb_sphere_mg": r["crlb_sphere_mg"], "final_target_mg": target,
+            "final_ok": bool(final is not None and final["true_mg"] <= target),
+            "calibrate_s": r["calibrate_s"],
+        })
+    zs = np.asarray(zs)
+    out = {
+        "calibrated_versions": int(sum(p["calibrated_versions"] for p in per_seed)),
+        "within_2sd": float(np.mean(zs <= 2)) if zs.size else None,
+        "max_abs_z": float(zs.max()) if zs.size else None,
+        "sphere_ratio_ok": float(np.mean(ratio_ok)) if ratio_ok else None,
+        "jumps": int(jumps), "pairs": int(pairs), "jump_fraction": jumps / pairs if pairs else 0.0,
+        "max_versions_per_week": max(p["versions_per_week"] for p in per_seed),
+        "final_ok_all": all(p["final_ok"] for p in per_seed),
+        "per_seed": per_seed,
+    }
+    checks = {
+        ">= 93 % of parameter errors within 2 sd": out["within_2sd"] is not None and out["within_2sd"] >= 0.93,
+        "no parameter error beyond 5 sd": out["max_abs_z"] is not None and out["max_abs_z"] <= 5,
+        "true <= 2.5 x predicted + 0.05 mg in >= 90 %": out["sphere_ratio_ok"] is not None and out["sphere_ratio_ok"] >= 0.9,
+        "< 1 % jumps (true > 1.5 x previous + 0.5 mg)": out["jump_fraction"] < 0.01,
+        "<= 150 versions per week": out["max_versions_per_week"] <= 150,
+        "final <= max(0.5 mg, 2 x CRLB) on every seed": out["final_ok_all"],
+    }
+    out["checks"] = checks
+    return out
+
+
+def markdown(title: str, s: dict) -> str:
+    """A Markdown table of one scored set."""
+    f = lambda x, d=2: "—" if x is None else f"{x:.{d}f}"  # noqa: E731
+    lines = [f"**{title}**: {s['calibrated_versions']} calibrated versions; "
+             f"{100 * (s['within_2sd'] or 0):.1f} % of parameter errors within 2 sd, max {f(s['max_abs_z'])} sd; "
+             f"true ≤ 2.5 × predicted + 0.05 mg in {100 * (s['sphere_ratio_ok'] or 0):.1f} %; "
+             f"jumps {s['jumps']}/{s['pairs']}; at most {s['max_versions_per_week']:.0f} versions/week.", "",
+             "| seed | effect | versions | calibrated | first calibrated (h) | final true (mg) | final predicted (mg) | CRLB (mg) | target (mg) | ok |",
+             "|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for p in s["per_seed"]:
+        lines.append(f"| {p['seed']} | {p['effect']} | {p['versions']} | {p['calibrated_versions']} | "
+                     f"{f(p['first_calibrated_h'], 1)} | {f(p['final_true_mg'], 3)} | {f(p['final_predicted_mg'], 3)} | "
+                     f"{f(p['crlb_sphere_mg'], 3)} | {f(p['final_target_mg'], 2)} | {'yes' if p['final_ok'] else 'NO'} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", default="0-9", help="seeds, e.g. 0-9 or 1,5,7")
+    ap.add_argument("--days", type=float, default=7.0)
+    ap.add_argument("--effects", default="none",
+                    help="'none' (model affine9), 'all' (each effect with affine9+effect), or one effect name")
+    ap.add_argument("--workers", type=int, default=min(2, mp.cpu_count()))
+    ap.add_argument("--json", metavar="FILE", help="write the full results here")
+    ap.add_argument("--markdown", metavar="FILE", help="write the Markdown tables here")
+    args = ap.parse_args(argv)
+    effects = list(EFFECTS) if args.effects == "all" else [args.effects]
+    t0 = time.perf_counter()
+    results = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        jobs = [{"seed": s, "days": args.days, "effect": e, "tmp": tmp,
+                 "model": "affine9" if e == "none" else f"affine9+{e}"} for e in effects for s in _seeds(args.seeds)]
+        done = 0
+        with mp.get_context("spawn").Pool(args.workers) as pool:
+            runs = []
+            for r in pool.imap_unordered(run_one, jobs):
+                runs.append(r)
+                done += 1
+                print(f"[{done}/{len(jobs)}] seed {r['seed']} {r['effect']}: {len(r['versions'])} versions, "
+                      f"calibrate {r['calibrate_s']:.1f} s", file=sys.stderr, flush=True)
+    texts = []
+    all_ok = True
+    for e in effects:
+        rs = sorted([r for r in runs if r["effect"] == e], key=lambda r: r["seed"])
+        s = score(rs)
+        results[e] = {"score": s, "runs": rs}
+        title = f"effects {e}, model {rs[0]['model']}, seeds {args.seeds}, {args.days:g} days"
+        texts.append(markdown(title, s))
+        print(texts[-1])
+        for name, ok in s["checks"].items():
+            print(f"  {'PASS' if ok else 'FAIL'}  {name}")
+            all_ok &= ok
+        print()
+    print(f"elapsed {time.perf_counter() - t0:.0f} s; {'all checks pass' if all_ok else 'SOME CHECKS FAIL'}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1, default=float))
+    if args.markdown:
+        Path(args.markdown).write_text("\n\n".join(texts) + "\n")
+    return 0 if all_ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
