@@ -135,7 +135,7 @@ def run_selfcal(ps: PoseSet, model: str = "affine9") -> Cal:
         th = np.asarray(cal.current["theta_u"], float)
         temp_coef = -(m_u @ th[cal.model.index("temperature_bias")])
     return Cal(matrix, offset, temp_coef, cal.model.temp_ref_c, fit_ms=fit_ms, e2e_ms=e2e,
-               message=f"{c['status']} v{c['version']}, {c['n_poses_absorbed']} poses absorbed")
+               message=f"{c['status']} v{c['version']}, {c['n_windows']} still windows in {c['n_poses']} pose cells")
 
 
 def run_engine(ps: PoseSet) -> Cal:

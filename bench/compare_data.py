@@ -19,7 +19,7 @@ errors, white noise and 3.91 mg quantisation; noise-free readings by ``sensor_me
   bias and scale, time drift of the bias, scale non-linearity) at their default
   magnitudes.
 
-Real sets (``../shared/data``): the 84-h GGIR wrist poses table, and the still windows
+Real sets (``data/``): the 84-h GGIR wrist poses table, and the still windows
 (``selfcal.detect.StaticDetector``, rate from the recording, as ``selfcal.pipeline``
 does; raw counts first normalised roughly with a loose norm test) of the Xsens
 multi-pose, NilsPod six-face, Axivity and Moticon insole recordings.
@@ -41,7 +41,7 @@ from selfcal.sim.config import EFFECT_NAMES
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from posegen import insole_like_directions, spread_directions  # noqa: E402
 
-DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 
 
 @dataclass

@@ -2,7 +2,7 @@
 
 Run: ``.venv/bin/python bench/sim_vs_real.py [--out docs/img] [--seed 1] [--days 1]``
 
-Real data (read-only, ``../shared/data``): Moticon OpenGo insoles (100 Hz, 16 cells)
+Real data (read-only, ``data/``): Moticon OpenGo insoles (100 Hz, 16 cells)
 and the gaitmap shoe-mounted NilsPod (204.8 Hz). Still moments are found with
 ``selfcal.detect.StaticDetector`` (``[detector]`` defaults, ``rate_hz`` set to the
 data's rate) on both the real and the simulated streams. Walking samples are those
@@ -25,7 +25,7 @@ from selfcal.sim import SimConfig, Simulation
 from selfcal.sim.wearer import OFF, SIT, STAIRS, STAND, WALK
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data"
+DATA = ROOT / "data"
 
 
 def block_mean(t_s: np.ndarray, x: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:

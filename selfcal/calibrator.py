@@ -72,6 +72,9 @@ class SchedulerConfig(BaseModel):
     refit_every_poses: int = Field(8, ge=1, description="refit after this many new pose cells")
     refit_every_windows: int = Field(720, ge=1, description="...or after this many new still windows")
     refit_every_hours: float = Field(6.0, gt=0, description="...or after this many hours with >= 1 new window")
+    refit_every_fraction: float = Field(
+        0.05, ge=0, description="...but at least this fraction of the stored cells (windows) must be new: refits "
+                                "come when the information has grown by that much, not on a fixed count")
     calibrated_min_poses: int = Field(12, ge=1, description="pose cells needed before status 'calibrated'")
     calibrated_max_sphere_mg: float = Field(
         2.0, gt=0, description="'calibrated' needs a predicted whole-sphere norm RMS error at most this, mg"
@@ -238,8 +241,8 @@ class OnlineCalibrator:
         events: list[dict] = []
         i = 0
         while i < k:
-            # feed up to the point where the scheduler could fire: cheap batches, same result
-            j = min(k, i + self._room())
+            # add up to the window where the scheduler could fire: few steps, same result
+            j = min(k, i + self._room(mean_g[i:], t_s[i:], None if temp is None else temp[i:]))
             stats = self.store.add(mean_g[i:j], None if sd is None else sd[i:j], n[i:j], t_s[i:j],
                                    None if temp is None else temp[i:j], rate_hz=self.det_cfg.rate_hz)
             self.new_since_refit += stats["new_info"]
@@ -250,14 +253,32 @@ class OnlineCalibrator:
             i = j
         return events
 
-    def _room(self) -> int:
-        """Windows that can be added before the scheduler could fire (>= 1)."""
+    def _room(self, mean_g: np.ndarray, t_s: np.ndarray, temp_c: np.ndarray | None) -> int:
+        """Windows of this batch that can be added before the scheduler could fire (>= 1)."""
         s = self.sched_cfg
+        k = len(t_s)
         if self.current is None:
-            return 1
-        left_cells = s.refit_every_poses - self.new_since_refit
-        left_windows = s.refit_every_windows - self.windows_since_refit
-        return int(max(1, min(left_cells, left_windows)))
+            need_cells = max(1 - self.new_since_refit, s.min_poses_first - int(self._usable().sum()), 1)
+            room = k
+        else:
+            cells, windows = self._refit_needs()
+            need_cells = max(cells - self.new_since_refit, 1)
+            room = max(windows - self.windows_since_refit, 1)
+            if self.last_refit_t_s is not None:
+                late = np.flatnonzero(t_s - self.last_refit_t_s >= s.refit_every_hours * 3600.0)
+                if late.size:
+                    room = min(room, int(late[0]) + 1)
+        fresh = self.store.new_cell_positions(mean_g[:room], t_s[:room], None if temp_c is None else temp_c[:room])
+        if fresh.size >= need_cells:
+            room = min(room, int(fresh[need_cells - 1]) + 1)
+        return int(max(1, min(room, k)))
+
+    def _refit_needs(self) -> tuple[int, int]:
+        """New cells and new windows that make a refit due (the larger of the count and the fraction)."""
+        s = self.sched_cfg
+        n_windows = float(self.store.stats[:, 0].sum()) if len(self.store) else 0.0
+        return (max(s.refit_every_poses, int(np.ceil(s.refit_every_fraction * len(self.store)))),
+                max(s.refit_every_windows, int(np.ceil(s.refit_every_fraction * n_windows))))
 
     def _due(self) -> bool:
         s = self.sched_cfg
@@ -265,7 +286,8 @@ class OnlineCalibrator:
             return False
         if self.current is None:
             return self.new_since_refit > 0 and int(self._usable().sum()) >= s.min_poses_first
-        if self.new_since_refit >= s.refit_every_poses or self.windows_since_refit >= s.refit_every_windows:
+        need_cells, need_windows = self._refit_needs()
+        if self.new_since_refit >= need_cells or self.windows_since_refit >= need_windows:
             return True
         if self.last_refit_t_s is not None and self.t_last_s is not None:
             return (self.t_last_s - self.last_refit_t_s) >= s.refit_every_hours * 3600.0

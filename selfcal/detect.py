@@ -5,8 +5,8 @@ mean specific force is gravity alone: the raw material of every norm-based
 calibration. The detector is fed chunks of any size (one sample to hours) and returns
 exactly the windows one call on the whole stream would return.
 
-Conditions (``docs/detector.md`` gives the numbers and why; ``../shared/docs/method.md``
-§3 the insole paper's version). Every sliding window of ``Twait`` seconds
+Conditions (``docs/detector.md`` gives the numbers and why, and the insole paper's
+version). Every sliding window of ``Twait`` seconds
 (``W = round(twait_s * rate_hz)`` samples, stride one sample) is tested:
 
 * per-axis sample sd ``<= sd_max_g`` (the motion test; it comes first because it does

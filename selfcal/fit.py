@@ -777,17 +777,23 @@ def fit_poses(
         raise InputError("fit: every initial value gives a non-finite cost (check the data)")
 
     weights = np.ones(len(raw_u))
-    if robust:  # Huber by iteratively reweighted LM: sigma_k / sqrt(w_k)
-        for _ in range(cfg.irls_max):
-            z = best.fun / noise(best.x)[0]
-            w_new = np.minimum(1.0, cfg.robust_c / np.maximum(np.abs(z), 1e-300))
-            if np.max(np.abs(w_new - weights)) < 1e-3:
-                break
-            weights = w_new
-            res = lm_solve(model, best.x, raw_u, NoiseModel(noise.var_axis / weights[:, None], noise.floor2),
-                           prior, temp, t_s, cfg)
-            if res.success or not best.success:
-                best = res
+    if robust:
+        # Huber by iteratively reweighted LM (sigma_k / sqrt(w_k)); then the same with the
+        # poses beyond reject_z skipped (weight ~0): a redescending end, so that a burst of
+        # coherent outliers cannot pull the estimate by its bounded Huber influence
+        for skip in (False, True):
+            for _ in range(cfg.irls_max):
+                z = best.fun / noise(best.x)[0]
+                w_new = np.minimum(1.0, cfg.robust_c / np.maximum(np.abs(z), 1e-300))
+                if skip:
+                    w_new = np.where(np.abs(z) > cfg.reject_z, 1e-12, w_new)
+                if np.max(np.abs(w_new - weights)) < 1e-3:
+                    break
+                weights = w_new
+                res = lm_solve(model, best.x, raw_u, NoiseModel(noise.var_axis / weights[:, None], noise.floor2),
+                               prior, temp, t_s, cfg)
+                if res.success or not best.success:
+                    best = res
 
     # uncertainty (sigma at the estimate)
     sigma = noise(best.x)[0]

@@ -304,6 +304,31 @@ class PoseStore:
             self._bound()
         return out
 
+    def new_cell_positions(self, mean_g, t_s, temp_c=None) -> np.ndarray:
+        """Indices (sorted) of the windows that would open a new cell if added in order.
+
+        Used by the scheduler to add a batch in as few steps as possible; the gate's
+        outlier twins are not foreseen (they only make a refit come later than this).
+        """
+        mean = np.atleast_2d(np.asarray(mean_g, dtype=float))
+        k = mean.shape[0]
+        if k == 0:
+            return np.zeros(0, dtype=np.int64)
+        t_s = np.broadcast_to(np.asarray(t_s, dtype=float), (k,))
+        temp = np.full(k, np.nan) if temp_c is None else np.broadcast_to(np.asarray(temp_c, dtype=float), (k,))
+        norm = np.sqrt(np.einsum("ij,ij->i", mean, mean))
+        valid = np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s)
+        idx = np.flatnonzero(valid)
+        if idx.size == 0:
+            return idx
+        key = self._keys(mean[idx] / norm[idx, None], temp[idx], t_s[idx])
+        if not self._index and len(self):
+            self._reindex()
+        _, first = np.unique(key, return_index=True)
+        first = np.sort(first)
+        fresh = np.array([int(key[i]) not in self._index for i in first], dtype=bool)
+        return idx[first[fresh]]
+
     def _bound(self) -> None:
         """Coarsen the oldest half of the time range (merge block pairs), then drop if needed."""
         for _ in range(8):

@@ -180,9 +180,9 @@ def replay(
                     poses.temp_c[sel])
             events = cal.feed_poses(*args)
             if first_calibrated_h is None:  # the as-shipped calibrator is only timed to 'calibrated'
-                for ev, t_ev in _online_feed(online, args):
-                    if online.status == "calibrated":
-                        first_calibrated_h = t_ev / 3600.0
+                for ev in online.feed_poses(*args):
+                    if ev["published"] and ev["calibration"]["status"] == "calibrated":
+                        first_calibrated_h = float(ev["t_s"]) / 3600.0
                         break
         else:
             events = []
@@ -236,14 +236,6 @@ def replay(
         "truth": {"params": truth.params(), "effects": truth.model_params()},
         "final": None if final is None else {k: final[k] for k in ("params", "std", "status", "version", "undetermined")},
     }
-
-
-def _online_feed(online: OnlineCalibrator, args):
-    """Feed the as-shipped calibrator pose by pose (so the time of 'calibrated' is exact)."""
-    mean, sd, n, t, temp = args
-    for i in range(len(t)):
-        ev = online.feed_poses(mean[i: i + 1], sd[i: i + 1], n[i: i + 1], t[i: i + 1], temp[i: i + 1])
-        yield ev, float(t[i])
 
 
 def _replay_one(kwargs: dict) -> dict:

@@ -148,6 +148,7 @@ def calibration_out(device_id: str, dev: DeviceRecord, ver: VersionRecord | None
         offset=calib.get("offset"),
         n_poses=calib.get("n_poses"),
         residual_rms_mg=calib.get("residual_rms_mg"),
+        predicted_sphere_rms_mg=calib.get("predicted_sphere_rms_mg"),
         updated_at=_iso(ver.created_at) if ver else None,
         determined=det,
         undetermined=und,

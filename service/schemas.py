@@ -267,6 +267,8 @@ class CalibrationOut(BaseModel):
     offset: list[float] | None = None
     n_poses: int | None = None
     residual_rms_mg: float | None = None
+    predicted_sphere_rms_mg: float | None = Field(
+        None, description="calibrated-norm RMS error over the whole sphere predicted by the covariance, mg")
     updated_at: str | None = Field(None, description="ISO 8601 UTC time of this version")
     determined: list[str] = Field(default_factory=list, description="parameters the data determined")
     undetermined: list[str] = Field(default_factory=list, description="parameters held at the prior")

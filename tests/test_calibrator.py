@@ -102,7 +102,7 @@ def test_identical_poses_do_not_make_a_calibration():
     assert events[-1]["reason"] == "insufficient_coverage"
 
 
-def test_guard_keeps_the_current_model_when_new_poses_are_bad():
+def test_bad_still_poses_after_calibration_are_rejected_not_fitted():
     rng = np.random.default_rng(35)
     truth = random_truth(rng)
     t, raw, _ = sample_stream(rng, A9, truth, spread_directions(rng, 40))
@@ -111,18 +111,20 @@ def test_guard_keeps_the_current_model_when_new_poses_are_bad():
     cal.flush()
     before = cal.calibration()
     assert before is not None
+    assert sphere_rms_mg(A9, A9.from_dict(before["params"]), truth) < 1.0
     # a burst of "still" poses with a wrong magnitude (e.g. a constant acceleration in a car)
     d = spread_directions(rng, 12)
     bad = 1.15 * d @ np.linalg.inv(A9.linear(truth)[0]).T + A9.linear(truth)[1]
     events = cal.feed_poses(bad, np.full((12, 3), 2e-3), np.full(12, 40), t[-1] + 10 + np.arange(12))
     events += cal.flush()
-    assert events and not any(e["published"] for e in events), events
-    assert {e["reason"] for e in events} <= {"worse_than_current", "implausible"}
-    assert cal.calibration()["version"] == before["version"]
-    assert cal.calibration()["params"] == before["params"]
+    after = cal.calibration()
+    # whatever is published stays as good as before: the robust fit rejects the burst
+    assert sphere_rms_mg(A9, A9.from_dict(after["params"]), truth) < 1.0
+    if after["version"] != before["version"]:
+        assert after["n_rejected"] >= 10
 
 
-def test_warm_refits_are_sequential_and_do_not_double_count():
+def test_refits_use_the_whole_store_and_uncertainty_shrinks():
     rng = np.random.default_rng(36)
     truth = random_truth(rng)
     cal = OnlineCalibrator()
@@ -130,28 +132,14 @@ def test_warm_refits_are_sequential_and_do_not_double_count():
     stds = []
     for batch in range(4):
         t, raw, _ = sample_stream(rng, A9, truth, spread_directions(rng, 16), t0_s=t0)
-        t0 = t[-1] + 100
+        t0 = t[-1] + 4000  # a new time block each batch
         _feed_in_chunks(cal, t, raw)
         cal.flush()
         stds.append(cal.calibration()["std"]["sx"])
-    modes = [cal.last_refit["mode"]]
-    assert modes[-1] == "sequential"
+    assert cal.last_refit["mode"] == "full"
+    assert cal.last_refit["n_poses"] == len(cal.store) >= 60  # every refit fits every cell
     # uncertainty shrinks as new poses arrive, roughly like 1/sqrt(n)
     assert stds[-1] < stds[0]
     assert stds[-1] > stds[0] / 4
     theta = A9.from_dict(cal.calibration()["params"])
     assert sphere_rms_mg(A9, theta, truth) < 1.0
-
-
-def test_full_update_mode_refits_the_whole_buffer():
-    rng = np.random.default_rng(37)
-    truth = random_truth(rng)
-    cal = OnlineCalibrator({"scheduler": {"update": "full"}})
-    t0 = 0.0
-    for _ in range(2):
-        t, raw, _ = sample_stream(rng, A9, truth, spread_directions(rng, 16), t0_s=t0)
-        t0 = t[-1] + 100
-        _feed_in_chunks(cal, t, raw)
-        cal.flush()
-    assert cal.last_refit["mode"] == "full"
-    assert sphere_rms_mg(A9, A9.from_dict(cal.calibration()["params"]), truth) < 1.0

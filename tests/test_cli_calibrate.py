@@ -9,7 +9,7 @@ import pytest
 from selfcal.cli import main
 from selfcal.io import read_recording
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"  # shared/ beside the checkout
+DATA = Path(__file__).resolve().parents[1] / "data"  # real recordings shipped with the repository
 
 
 def run_json(capsys, *argv):

@@ -103,6 +103,9 @@ def test_demo_two_insoles_kill_and_restart_lose_nothing(tmp_path, monkeypatch, c
         assert d["status"] in ("uncalibrated", "provisional", "calibrated")
         if d["status"] != "uncalibrated":
             assert d["sphere_norm_rms_mg"] is not None and d["sphere_norm_rms_mg"] >= 0
+            assert d["predicted_sphere_rms_mg"] is not None
+        if d["status"] == "calibrated":  # a status is a promise
+            assert d["promise_kept"], d
     gw = out["gateway"]
     assert gw["gaps"] == 0 and gw["rejected_batches"] == 0 and gw["malformed_packets"] == 0
     assert gw["samples_forwarded"] == sum(d["samples_sent"] for d in out["devices"])

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import glob
 import json
-import os
 import time
 from pathlib import Path
 
@@ -18,9 +17,7 @@ from selfcal.config import load_config, section
 from selfcal.detect import DetectorConfig, StaticDetector, StillWindows
 from selfcal.errors import InputError
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-if not DATA.exists():  # CI: shared/ beside the checkout
-    DATA = Path(os.environ.get("SELFCAL_SHARED_DATA", "/work/shared/data"))
+DATA = Path(__file__).resolve().parents[1] / "data"  # real recordings shipped with the repository
 G = 9.80665
 
 
@@ -409,7 +406,7 @@ def test_input_errors_name_the_argument():
 # ---------------------------------------------------------------------------- real data
 MOTICON = sorted(glob.glob(str(DATA / "moticon-insole" / "*.csv")))
 GAITMAP = sorted(glob.glob(str(DATA / "gaitmap-shoe-walking" / "*.csv")))
-needs_data = pytest.mark.skipif(not MOTICON or not GAITMAP, reason="shared/data not found")
+needs_data = pytest.mark.skipif(not MOTICON or not GAITMAP, reason="data/ not found")
 
 
 def moticon(path):

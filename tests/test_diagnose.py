@@ -9,7 +9,7 @@ from effectgen import EFFECT_RANGES, hidden_effect_case
 from selfcal.diagnose import diagnose_poses, diagnose_recording
 from selfcal.io import read_recording
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 FAST = {"diagnose": {"n_sim": 2}}  # the simulated replicates are not needed to name a cause
 
 

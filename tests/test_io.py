@@ -12,7 +12,7 @@ from selfcal import STANDARD_GRAVITY_MPS2
 from selfcal.errors import InputError
 from selfcal.io import Recording, read_recording, write_recording
 
-DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 REAL_FILES = sorted(DATA_DIR.glob("*/*.csv"))
 
 SAMPLES_HEAD = "# selfcal-recording v1\n# kind=samples\n"
