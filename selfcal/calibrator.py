@@ -328,15 +328,17 @@ class OnlineCalibrator:
         theta0 = self.initial_params_u if self.current is None else np.asarray(self.current["theta_u"])
         floor = self.sched_cfg.cell_floor_g
         cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor})
+        clusters = self.store.clusters()[usable]
         try:
-            fit = fit_poses(self.model, data, prior=prior, theta0_u=theta0, cfg=cfg, robust=True)
+            fit = fit_poses(self.model, data, prior=prior, theta0_u=theta0, cfg=cfg, robust=True, clusters=clusters)
             # the noise the data show: shared floor and cell noise scaled (never below the model)
             c_floor, c_noise = variance_components(self.model, fit, data, floor)
             if c_floor > 1.0 or c_noise > 1.0:
                 cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor * np.sqrt(c_floor)})
                 data = PoseData(data.mean, None if data.sd is None else data.sd * np.sqrt(c_noise),
                                 data.count, data.t_s, data.temp_c)
-                fit = fit_poses(self.model, data, prior=prior, theta0_u=fit.theta_u, cfg=cfg, robust=True)
+                fit = fit_poses(self.model, data, prior=prior, theta0_u=fit.theta_u, cfg=cfg, robust=True,
+                                clusters=clusters)
         except InputError as exc:
             return self._refuse(t_now, "insufficient_coverage", str(exc))
         fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}

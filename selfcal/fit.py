@@ -692,6 +692,7 @@ def fit_poses(
     theta0_u: np.ndarray | None = None,
     cfg: FitConfig | None = None,
     robust: bool = False,
+    clusters: np.ndarray | None = None,
 ) -> FitResult:
     """Fit an error model to still poses (MAP with a Gaussian prior).
 
@@ -710,6 +711,11 @@ def fit_poses(
         solved by iteratively reweighted LM; poses beyond ``cfg.reject_z`` carry no
         information in the covariance and the reduced chi² (``extra["weights"]``,
         ``extra["n_rejected"]``).
+    clusters : ndarray, shape (n,), optional — a group label per pose (for example the
+        direction cell, whatever the time). The covariance is then at least the
+        cluster-robust sandwich ``A^-1 (sum_c S_c S_c^T + prior) A^-1`` (``S_c`` the
+        summed score of a cluster): a systematic error shared by the poses of a cluster
+        widens it, where the Fisher information alone would not see it.
 
     Returns
     -------
@@ -810,6 +816,8 @@ def fit_poses(
     infl = max(1.0, chi2_red)
     cov_u = np.linalg.inv(fisher / infl + lam_p)
     cov_u = 0.5 * (cov_u + cov_u.T)
+    if clusters is not None and len(clusters) == len(rw):
+        cov_u = _psd_max(cov_u, _cluster_sandwich(jw, rw, np.asarray(clusters), lam_p, post0))
     determined, shrink, n_dir, und, _ = observability(
         model, jw / np.sqrt(infl), prior, cfg.determined_ratio, posterior_cov=cov_u)
     crlb_u = cramer_rao_std(best.jac, sigma * np.sqrt(infl))
@@ -846,6 +854,27 @@ def fit_poses(
 
 
 # --------------------------------------------------------------------------- noise scale
+
+
+def _cluster_sandwich(jw: np.ndarray, rw: np.ndarray, clusters: np.ndarray, lam_p: np.ndarray,
+                      a_inv: np.ndarray) -> np.ndarray:
+    """Cluster-robust covariance ``A^-1 (sum_c S_c S_c^T + prior precision) A^-1`` (p, p)."""
+    score = jw * rw[:, None]
+    _, inv = np.unique(clusters, return_inverse=True)
+    sums = np.zeros((int(inv.max()) + 1 if inv.size else 0, jw.shape[1]))
+    np.add.at(sums, inv, score)
+    meat = sums.T @ sums + lam_p
+    out = a_inv @ meat @ a_inv
+    return 0.5 * (out + out.T)
+
+
+def _psd_max(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """A covariance at least as large as ``a`` and ``b`` in every direction: ``a + (b - a)_+``."""
+    evals, evecs = np.linalg.eigh(b - a)
+    pos = np.clip(evals, 0.0, None)
+    out = a + (evecs * pos) @ evecs.T
+    return 0.5 * (out + out.T)
+
 
 
 def variance_components(model: ErrorModel, fit: "FitResult", poses: PoseData, floor_g: float,

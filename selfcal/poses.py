@@ -378,6 +378,11 @@ class PoseStore:
         """Fold of every cell (m,) int (from its key)."""
         return _fold_of(self.key >> 5, self.config.folds)
 
+    def clusters(self) -> np.ndarray:
+        """Cluster label of every cell (m,) int: its direction cell and temperature band,
+        whatever its time block (the fit's cluster-robust covariance groups by this)."""
+        return (self.key >> 5) & ((1 << 34) - 1)
+
     def outlier_twin(self) -> np.ndarray:
         """Cells holding windows the gate kept apart (m,) bool."""
         return (self.key & 1).astype(bool)
