@@ -34,6 +34,7 @@ the nominal model and counted in ``n_failed``.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 import time
@@ -543,6 +544,9 @@ def build_report(args) -> tuple[dict, dict]:
     methods = [m for m in METHOD_ORDER if m.startswith("selfcal") or m in BASELINES]
     if args.methods:
         methods = [m for m in methods if m in args.methods.split(",") or m == "selfcal"]
+    if "ggir_actipy" in methods and importlib.util.find_spec("actipy") is None:
+        methods.remove("ggir_actipy")
+        log("actipy is not installed (opt-in extra 'compare', Academic Use Licence): ggir_actipy skipped")
     if "ggir_actipy" in methods:  # warm-up: the first call imports pandas/statsmodels
         warm = sim_spread(99)
         run_baseline("ggir_actipy", warm, quick)

@@ -1,15 +1,19 @@
 """The ``selfcal`` command line.
 
 Each sub-command lives in ``selfcal/commands/<name>.py`` and provides
-``add_arguments(parser)`` and ``run(args) -> int``. Exit codes: 0 success,
-2 bad input (one-line reason on stderr), 1 any other failure.
+``add_arguments(parser)`` and ``run(args) -> int``. Exit codes: 0 done, 1 refused or
+failed (for example no calibration could be published), 2 usage or input error (a
+one-line reason on stderr, never a traceback). A closed output pipe ends quietly.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+
+from pydantic import ValidationError
 
 from selfcal.errors import InputError, SelfcalError
 
@@ -28,7 +32,11 @@ COMMANDS = {
 
 def build_parser() -> argparse.ArgumentParser:
     """The top-level argument parser with every available sub-command."""
-    parser = argparse.ArgumentParser(prog="selfcal", description=__doc__.splitlines()[0])
+    from selfcal import __version__
+
+    parser = argparse.ArgumentParser(prog="selfcal", description=__doc__.splitlines()[0],
+                                     epilog="exit codes: 0 done; 1 refused or failed; 2 usage or input error")
+    parser.add_argument("--version", action="version", version=f"selfcal {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, help_text in COMMANDS.items():
         try:
@@ -38,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # not built yet
             raise
         p = sub.add_parser(name, help=help_text, description=help_text)
-        p.add_argument("--config", metavar="FILE", help="TOML file overriding configs/default.toml")
+        p.add_argument("--config", metavar="FILE", help="TOML file overriding selfcal/configs/default.toml")
         module.add_arguments(p)
         p.set_defaults(_run=module.run)
     return parser
@@ -52,9 +60,21 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args._run(args) or 0)
+        code = int(args._run(args) or 0)
+        sys.stdout.flush()
+        return code
+    except BrokenPipeError:
+        # the reader closed the pipe (``selfcal ... --json | head -1``): the work is done,
+        # only its reader stopped; no traceback, and nothing more is written
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
     except InputError as exc:
         print(f"selfcal {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except ValidationError as exc:  # a configuration section (or file) with a wrong key or value
+        what = "; ".join(f"{'.'.join(str(x) for x in e['loc']) or exc.title}: {e['msg']}" for e in exc.errors()[:3])
+        print(f"selfcal {args.command}: error: invalid setting ({exc.title}): {what}", file=sys.stderr)
         return 2
     except SelfcalError as exc:
         print(f"selfcal {args.command}: {exc}", file=sys.stderr)

@@ -4,20 +4,26 @@ Each module owns the pydantic model of its own section (``[detector]`` is valida
 ``selfcal.detect.DetectorConfig``, ``[fit]`` by ``selfcal.fit.FitConfig`` and so on);
 this module only finds, reads and merges the files.
 
-The defaults live in ``configs/default.toml`` (every threshold named and commented);
+The defaults live in ``selfcal/configs/default.toml`` (every threshold named and commented);
 a user file passed with ``--config FILE`` overrides any subset of keys.
 """
 
 from __future__ import annotations
 
 import tomllib
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from selfcal.errors import InputError
 
-#: The repository's default configuration file (also shipped next to the package).
-DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "configs" / "default.toml"
+#: Where the default configuration ships: inside the package (``selfcal/configs/default.toml``).
+DEFAULT_CONFIG_RESOURCE = ("selfcal.configs", "default.toml")
+
+
+def default_config_text() -> str:
+    """The text of the packaged default configuration (``importlib.resources``)."""
+    return resources.files(DEFAULT_CONFIG_RESOURCE[0]).joinpath(DEFAULT_CONFIG_RESOURCE[1]).read_text("utf-8")
 
 
 def _merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
@@ -48,9 +54,7 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
     Returns a dict of sections (``{"detector": {...}, "fit": {...}, ...}``); each
     consumer validates its own section with its pydantic model.
     """
-    cfg: dict[str, Any] = {}
-    if DEFAULT_CONFIG_PATH.exists():
-        cfg = read_toml(DEFAULT_CONFIG_PATH)
+    cfg = tomllib.loads(default_config_text())
     if path is not None:
         cfg = _merge(cfg, read_toml(path))
     return cfg

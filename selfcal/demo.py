@@ -104,7 +104,7 @@ class DemoOptions:
         restarted on the same database and port.
     seed : int
     config : str or None
-        TOML file overriding ``configs/default.toml`` (passed to the service too).
+        TOML file overriding ``selfcal/configs/default.toml`` (passed to the service too).
     progress : bool
         Live status on stderr.
     verbose : bool

@@ -231,6 +231,9 @@ class Recording:
         return self.path if self.path is not None else "<recording>"
 
 
+#: Device formats recognised by their suffix (named in the error until a reader exists).
+BINARY_DEVICE_SUFFIXES = {".cwa": "Axivity CWA", ".gt3x": "ActiGraph GT3X", ".bin": "GENEActiv BIN"}
+
 def _check_fields(rec: Recording) -> None:
     """Check kinds, units and shapes of a Recording; raise InputError naming the field."""
     where = rec.path if rec.path is not None else "Recording"
@@ -531,12 +534,25 @@ def read_recording(path: str | os.PathLike) -> Recording:
         non-integer ``n``; ``"path: reason"`` if the file cannot be read.
     """
     name = os.fspath(path)
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{name}: is a directory, not a recording file")
+    if p.suffix.lower() in BINARY_DEVICE_SUFFIXES:
+        raise InputError(
+            f"{name}: {BINARY_DEVICE_SUFFIXES[p.suffix.lower()]} files are not read yet; accepted: a selfcal "
+            f"recording CSV ('# selfcal-recording v1' header, units in every column name)")
     try:
-        text = Path(path).read_text(encoding="utf-8-sig")
+        text = p.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise InputError(f"{name}: not UTF-8 text ({exc.reason} at byte {exc.start})") from exc
+        raise InputError(
+            f"{name}: not UTF-8 text ({exc.reason} at byte {exc.start}); accepted: a selfcal recording CSV "
+            "('# selfcal-recording v1' header, units in every column name)") from exc
+    except FileNotFoundError as exc:
+        raise InputError(f"{name}: no such file") from exc
     except OSError as exc:
         raise InputError(f"{name}: cannot read the file ({exc.strerror or exc})") from exc
+    if not text.strip():
+        raise InputError(f"{name}: the file is empty")
     if "\r" in text:
         text = text.replace("\r\n", "\n").replace("\r", "\n")
     lines = text.split("\n")

@@ -1,7 +1,7 @@
 """Service settings: one validated pydantic model, merged from four layers.
 
 Precedence (lowest first): the defaults below < the ``[service]`` section of the
-TOML config (``configs/default.toml`` overridden by ``--config FILE``) < ``SELFCAL_*``
+TOML config (``selfcal/configs/default.toml`` overridden by ``--config FILE``) < ``SELFCAL_*``
 environment variables (``SELFCAL_API_KEYS``, ``SELFCAL_DB_PATH`` …) < command-line
 flags of ``selfcal serve``.
 

@@ -48,6 +48,9 @@ def load_calibration(path: str) -> CalibrationFile:
 
 
 def run(args) -> int:
+    from selfcal.commands.calibrate import check_writable
+
+    check_writable(args.out)
     cal = load_calibration(args.calibration)
     model = ErrorModel(cal.model, cal.temp_ref_c, cal.t_ref_s)
     theta = model.from_dict(cal.params)

@@ -19,6 +19,15 @@ def run(args) -> int:
     from selfcal.diagnose import diagnose_recording
 
     cfg = load_config(args.config)
+    if args.report:  # the report folder is created (with its parents) before the work starts
+        from pathlib import Path
+
+        from selfcal.errors import InputError
+
+        try:
+            Path(args.report).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"--report {args.report}: cannot create the folder ({exc.strerror or exc})") from exc
     rec = read_recording(args.recording)
     report, _ = diagnose_recording(rec, cfg, args.base_model, keep_arrays=bool(args.report))
     if args.report:

@@ -166,7 +166,7 @@ class Gateway:
     spool_path : str or Path
         SQLite spool file (batches in flight, batch seq numbers).
     config : dict or GatewayConfig, optional
-        The ``[gateway]`` section; defaults as in ``configs/default.toml``.
+        The ``[gateway]`` section; defaults as in ``selfcal/configs/default.toml``.
     ble : BleBackend, optional
         bleak backend; default the platform's (BlueZ on Linux).
     http_transport : httpx.AsyncBaseTransport, optional

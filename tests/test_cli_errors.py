@@ -1,0 +1,90 @@
+"""Wrong invocations: each gives its documented exit code and one line on stderr, never a traceback.
+
+Exit codes (README, ``selfcal --help``): 0 done, 1 refused or failed, 2 usage or input error.
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+POSES = ROOT / "data" / "ggir-wrist-84h" / "poses.csv"
+CWA = ROOT / "data" / "device-formats" / "axivity_ax3.cwa"
+
+
+def run_cli(*args, cwd=None):
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.run([sys.executable, "-m", "selfcal.cli", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, env=env, timeout=120)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    (d / "empty.csv").write_text("")
+    (d / "binary.csv").write_bytes(bytes(range(256)) * 4)
+    (d / "nomagic.csv").write_text("t_s,ax_g,ay_g,az_g\n0,0,0,1\n")
+    (d / "bad.toml").write_text("[fit\nmax_iter = 3\n")
+    (d / "unknown_key.toml").write_text("[fit]\nno_such_key = 3\n")
+    (d / "bad_cal.json").write_text("{not json")
+    (d / "adir").mkdir()
+    ro = d / "readonly"
+    ro.mkdir()
+    ro.chmod(0o500)
+    return d
+
+
+CASES = [
+    ("missing file", lambda d: ["calibrate", d / "nope.csv"], 2, "no such file"),
+    ("directory as file", lambda d: ["calibrate", d / "adir"], 2, "directory"),
+    ("unknown model", lambda d: ["calibrate", POSES, "--model", "affine12"], 2, "unknown base model"),
+    ("unknown effect", lambda d: ["calibrate", POSES, "--model", "affine9+wobble"], 2, "unknown effect"),
+    ("bad TOML", lambda d: ["calibrate", POSES, "--config", d / "bad.toml"], 2, "invalid TOML"),
+    ("missing config", lambda d: ["calibrate", POSES, "--config", d / "none.toml"], 2, "config file not found"),
+    ("unknown config key", lambda d: ["calibrate", POSES, "--config", d / "unknown_key.toml"], 2, "no_such_key"),
+    ("output in a missing folder", lambda d: ["calibrate", POSES, "--out", d / "no" / "cal.json"], 2, "does not exist"),
+    ("output is a folder", lambda d: ["calibrate", POSES, "--out", d / "adir"], 2, "is a directory"),
+    ("history in a missing folder", lambda d: ["calibrate", POSES, "--history", d / "no" / "h.jsonl"], 2, "does not exist"),
+    ("device binary format", lambda d: ["calibrate", CWA], 2, "accepted"),
+    ("binary file named .csv", lambda d: ["calibrate", d / "binary.csv"], 2, "not UTF-8"),
+    ("empty file", lambda d: ["calibrate", d / "empty.csv"], 2, "empty"),
+    ("no magic line", lambda d: ["calibrate", d / "nomagic.csv"], 2, "selfcal-recording"),
+    ("apply without calibration", lambda d: ["apply", POSES, "--out", d / "o.csv"], 2, "--calibration"),
+    ("apply with a malformed calibration", lambda d: ["apply", POSES, "--calibration", d / "bad_cal.json",
+                                                      "--out", d / "o.csv"], 2, "bad_cal.json"),
+    ("apply into a missing folder", lambda d: ["apply", POSES, "--calibration", d / "bad_cal.json",
+                                               "--out", d / "no" / "o.csv"], 2, "does not exist"),
+    ("unknown command", lambda d: ["calibrat", POSES], 2, "invalid choice"),
+    ("negative days", lambda d: ["simulate", "--days", "-1", "--seed", "1", "--out", d / "s.csv"], 2, "--days"),
+    ("diagnose an empty file", lambda d: ["diagnose", d / "empty.csv"], 2, "empty"),
+]
+
+
+@pytest.mark.parametrize("name,argv,code,needle", CASES, ids=[c[0] for c in CASES])
+def test_wrong_invocation(files, name, argv, code, needle):
+    p = run_cli(*argv(files))
+    assert p.returncode == code, (p.returncode, p.stderr)
+    assert "Traceback" not in p.stderr, p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip() and not ln.startswith("usage:") and not ln.startswith("  ")]
+    assert len(lines) == 1, p.stderr
+    assert needle.lower() in lines[0].lower(), lines[0]
+
+
+def test_unwritable_output_folder(files):
+    if os.geteuid() == 0:
+        pytest.skip("root writes anywhere")
+    p = run_cli("calibrate", POSES, "--out", files / "readonly" / "cal.json")
+    assert p.returncode == 2 and "not writable" in p.stderr
+
+
+def test_version_and_closed_pipe():
+    p = run_cli("--version")
+    assert p.returncode == 0 and p.stdout.startswith("selfcal ")
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    cmd = f"{sys.executable} -m selfcal.cli calibrate {POSES} --json | head -c 10"
+    q = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, env=env, timeout=120)
+    assert q.stdout == '{"format":'[:10] or len(q.stdout) == 10
+    assert "Traceback" not in q.stderr and "BrokenPipe" not in q.stderr, q.stderr
