@@ -1,7 +1,7 @@
 """The FastAPI app factory: routes exactly as in design.md, engine created in ``lifespan``.
 
-Layers: routes (this module) -> :class:`service.worker.RefitWorker` (calibrators) and
-:class:`service.storage.Storage` (all SQL in ``service/sqlite_store.py``). Routes hold
+Layers: routes (this module) -> :class:`selfcal_service.worker.RefitWorker` (calibrators) and
+:class:`selfcal_service.storage.Storage` (all SQL in ``service/sqlite_store.py``). Routes hold
 no numerics. ``create_app(settings, calibrator_factory=...)`` lets tests inject a fake
 calibrator; ``app.state.store`` / ``app.state.worker`` exist while the app runs.
 """
@@ -25,9 +25,9 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import PlainTextResponse, Response
 
 from selfcal.errors import InputError
-from service.auth import AuthError, KeyRing
-from service.metrics import Metrics
-from service.schemas import (
+from selfcal_service.auth import AuthError, KeyRing
+from selfcal_service.metrics import Metrics
+from selfcal_service.schemas import (
     BINARY_MEDIA_TYPE,
     DEVICE_ID_PATTERN,
     BatchAck,
@@ -46,10 +46,10 @@ from service.schemas import (
     check_batch,
     decode_binary,
 )
-from service.settings import Settings
-from service.sqlite_store import SQLiteStore
-from service.storage import DeviceRecord, NewVersion, Storage, VersionRecord
-from service.worker import CalibratorFactory, RefitWorker
+from selfcal_service.settings import Settings
+from selfcal_service.sqlite_store import SQLiteStore
+from selfcal_service.storage import DeviceRecord, NewVersion, Storage, VersionRecord
+from selfcal_service.worker import CalibratorFactory, RefitWorker
 
 log = logging.getLogger("selfcal.service")
 

@@ -59,7 +59,7 @@ class Settings(BaseModel):
     @field_validator("api_keys")
     @classmethod
     def _keys_parse(cls, value: str) -> str:
-        from service.auth import parse_api_keys
+        from selfcal_service.auth import parse_api_keys
 
         parse_api_keys(value)  # raises ValueError naming the bad entry
         return value

@@ -1,4 +1,4 @@
-"""SQLite (WAL) implementation of :class:`service.storage.Storage`. All SQL is here.
+"""SQLite (WAL) implementation of :class:`selfcal_service.storage.Storage`. All SQL is here.
 
 One writer thread owns the only writing connection and applies queued writes in
 *group commits*: it takes every write queued so far (up to ``group_commit_max_ops``),
@@ -23,7 +23,7 @@ import time
 from concurrent.futures import Future
 from typing import Any, Callable
 
-from service.storage import (
+from selfcal_service.storage import (
     ConflictError,
     DeviceRecord,
     IngestResult,

@@ -25,9 +25,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from service.metrics import Metrics
-from service.schemas import Batch, decode_binary
-from service.storage import DeviceRecord, NewVersion, Progress, Storage
+from selfcal_service.metrics import Metrics
+from selfcal_service.schemas import Batch, decode_binary
+from selfcal_service.storage import DeviceRecord, NewVersion, Progress, Storage
 
 log = logging.getLogger("selfcal.service.worker")
 

@@ -164,7 +164,7 @@ def test_crlf_and_bom(tmp_path: Path) -> None:
 
 
 def test_missing_file_is_input_error(tmp_path: Path) -> None:
-    with pytest.raises(InputError, match="cannot read"):
+    with pytest.raises(InputError, match="no such file"):
         read_recording(tmp_path / "nope.csv")
 
 

@@ -28,8 +28,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         import uvicorn
 
-        from service.main import create_app
-        from service.settings import load_settings
+        from selfcal_service.main import create_app
+        from selfcal_service.settings import load_settings
     except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
         raise InputError(f"the service needs the 'service' extra (pip install 'selfcal[service]'): {exc}") from exc
 

@@ -115,7 +115,7 @@ def test_resent_batch_is_acknowledged_not_counted_twice(fake_server):
 
 
 def test_binary_batch_equals_json_batch(fake_server):
-    from service.schemas import Batch
+    from selfcal_service.schemas import Batch
 
     rng = np.random.default_rng(7)
     body = batch_json(0, n=40, temp=True, pressure_channels=3, rng=rng)
@@ -256,7 +256,7 @@ def test_unsupported_content_type_415(fake_server):
     ],
 )
 def test_bad_binary_batch(fake_server, mutate, field):
-    from service.schemas import Batch
+    from selfcal_service.schemas import Batch
 
     body = batch_json(0, n=40)
     raw = Batch(0, np.asarray(body["t_s"]), np.column_stack([body["ax_g"], body["ay_g"], body["az_g"]])).to_bytes()

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from selfcal.errors import InputError
-from service.auth import AuthError, KeyRing, parse_api_keys
-from service.schemas import Batch, FieldError, check_batch, decode_binary
-from service.settings import load_settings
-from service.worker import jsonable
+from selfcal_service.auth import AuthError, KeyRing, parse_api_keys
+from selfcal_service.schemas import Batch, FieldError, check_batch, decode_binary
+from selfcal_service.settings import load_settings
+from selfcal_service.worker import jsonable
 
 
 def test_settings_precedence_defaults_config_env_flags():
