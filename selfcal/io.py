@@ -231,7 +231,7 @@ class Recording:
         return self.path if self.path is not None else "<recording>"
 
 
-#: Device formats recognised by their suffix (named in the error until a reader exists).
+#: Device formats recognised by their suffix (decoded by ``selfcal.devices`` through actfast).
 BINARY_DEVICE_SUFFIXES = {".cwa": "Axivity CWA", ".gt3x": "ActiGraph GT3X", ".bin": "GENEActiv BIN"}
 
 def _check_fields(rec: Recording) -> None:
@@ -245,7 +245,8 @@ def _check_fields(rec: Recording) -> None:
     if rec.t_s.ndim != 1:
         raise InputError(f"{where}: t_s must have shape (n,), got {rec.t_s.shape}")
     n_rows = rec.t_s.shape[0]
-    rec.acc = np.asarray(rec.acc, dtype=np.float64)
+    # float32 stays float32 (device files decode to it; half the memory), anything else float64
+    rec.acc = np.asarray(rec.acc, dtype=np.float32 if np.asarray(rec.acc).dtype == np.float32 else np.float64)
     shapes = {"acc": (rec.acc, (n_rows, 3))}
     if rec.n is not None:
         n_raw = np.asarray(rec.n)
@@ -256,7 +257,8 @@ def _check_fields(rec: Recording) -> None:
     for name in ("temp_c", "duration_s", "n"):
         value = getattr(rec, name)
         if value is not None:
-            value = np.asarray(value, dtype=np.int64 if name == "n" else np.float64)
+            keep32 = name == "temp_c" and np.asarray(value).dtype == np.float32
+            value = np.asarray(value, dtype=np.int64 if name == "n" else (np.float32 if keep32 else np.float64))
             setattr(rec, name, value)
             shapes[name] = (value, (n_rows,))
     for name in ("gyro_dps", "sd"):
@@ -538,15 +540,16 @@ def read_recording(path: str | os.PathLike) -> Recording:
     if p.is_dir():
         raise InputError(f"{name}: is a directory, not a recording file")
     if p.suffix.lower() in BINARY_DEVICE_SUFFIXES:
-        raise InputError(
-            f"{name}: {BINARY_DEVICE_SUFFIXES[p.suffix.lower()]} files are not read yet; accepted: a selfcal "
-            f"recording CSV ('# selfcal-recording v1' header, units in every column name)")
+        from selfcal.devices import read_device
+
+        return read_device(path)
     try:
         text = p.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
         raise InputError(
             f"{name}: not UTF-8 text ({exc.reason} at byte {exc.start}); accepted: a selfcal recording CSV "
-            "('# selfcal-recording v1' header, units in every column name)") from exc
+            "('# selfcal-recording v1' header, units in every column name), or an Axivity .cwa, "
+            "ActiGraph .gt3x or GENEActiv .bin file") from exc
     except FileNotFoundError as exc:
         raise InputError(f"{name}: no such file") from exc
     except OSError as exc:

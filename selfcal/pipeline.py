@@ -155,7 +155,6 @@ def calibrate_recording(
             normalizer = guess_normalizer(rec.unit)
         cfg = _detector_config(config, rate, loose_norm=False)
         cal = OnlineCalibrator(cfg, model)
-        acc_u = normalizer.to_u(rec.acc)
         pres = rec.pressure_kpa() if rec.pressure is not None and rec.pressure_unit in ("kpa", "ncm2") else None
         events: list[dict] = []
         n = len(rec.t_s)
@@ -168,8 +167,9 @@ def calibrate_recording(
         for i in range(0, n, CHUNK_SAMPLES):
             sl = slice(i, i + CHUNK_SAMPLES)
             before = cal.buffer.n_seen
-            events += cal.feed_samples(
-                rec.t_s[sl], acc_u[sl], None if rec.temp_c is None else rec.temp_c[sl], None if pres is None else pres[sl]
+            events += cal.feed_samples(  # normalised chunk by chunk: no whole-file float64 copy
+                rec.t_s[sl], normalizer.to_u(rec.acc[sl]), None if rec.temp_c is None else rec.temp_c[sl],
+                None if pres is None else pres[sl]
             )
             n_windows += cal.buffer.n_seen - before
             if bar:

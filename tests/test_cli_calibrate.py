@@ -101,7 +101,7 @@ def test_single_still_pose_is_not_a_silent_identity(tmp_path, capsys):
     path = _write(tmp_path, "one.csv", HEAD.format(kind="samples") + "t_s,ax_g,ay_g,az_g\n" + _stream(np.c_[t, acc]))
     code = main(["calibrate", path, "--json"])
     out = capsys.readouterr()
-    assert code == 2
+    assert code == 1  # refused: nothing could be published (exit codes: README)
     assert "insufficient_coverage" in out.err
     assert json.loads(out.out)["calibration"] is None
 
@@ -110,7 +110,7 @@ def test_identical_poses_table(tmp_path, capsys):
     rows = [[i * 10, 0.01, 0.02, 1.01, 0.002, 0.002, 0.002, 10] for i in range(30)]
     text = HEAD.format(kind="poses") + "t_s,ax_g,ay_g,az_g,sdx_g,sdy_g,sdz_g,duration_s\n" + _stream(rows)
     code = main(["calibrate", _write(tmp_path, "same.csv", text)])
-    assert code == 2
+    assert code == 1  # refused
     assert "insufficient_coverage" in capsys.readouterr().err
 
 

@@ -12,7 +12,6 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 POSES = ROOT / "data" / "ggir-wrist-84h" / "poses.csv"
-CWA = ROOT / "data" / "device-formats" / "axivity_ax3.cwa"
 
 
 def run_cli(*args, cwd=None):
@@ -30,6 +29,8 @@ def files(tmp_path_factory):
     (d / "bad.toml").write_text("[fit\nmax_iter = 3\n")
     (d / "unknown_key.toml").write_text("[fit]\nno_such_key = 3\n")
     (d / "bad_cal.json").write_text("{not json")
+    (d / "garbage.cwa").write_bytes(b"not a CWA file " * 100)
+    (d / "data.xyz").write_bytes(bytes(range(256)) * 4)
     (d / "adir").mkdir()
     ro = d / "readonly"
     ro.mkdir()
@@ -48,7 +49,8 @@ CASES = [
     ("output in a missing folder", lambda d: ["calibrate", POSES, "--out", d / "no" / "cal.json"], 2, "does not exist"),
     ("output is a folder", lambda d: ["calibrate", POSES, "--out", d / "adir"], 2, "is a directory"),
     ("history in a missing folder", lambda d: ["calibrate", POSES, "--history", d / "no" / "h.jsonl"], 2, "does not exist"),
-    ("device binary format", lambda d: ["calibrate", CWA], 2, "accepted"),
+    ("corrupt device file", lambda d: ["calibrate", d / "garbage.cwa"], 2, "cannot decode"),
+    ("unknown binary format", lambda d: ["calibrate", d / "data.xyz"], 2, "accepted"),
     ("binary file named .csv", lambda d: ["calibrate", d / "binary.csv"], 2, "not UTF-8"),
     ("empty file", lambda d: ["calibrate", d / "empty.csv"], 2, "empty"),
     ("no magic line", lambda d: ["calibrate", d / "nomagic.csv"], 2, "selfcal-recording"),

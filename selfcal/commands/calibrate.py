@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from selfcal.config import load_config
-from selfcal.errors import InputError
+from selfcal.errors import CalibrationError, InputError
 from selfcal.io import read_recording
 from selfcal.models import ErrorModel
 
@@ -76,7 +76,7 @@ def run(args) -> int:
         message = result.last_refit["message"] if result.last_refit else "no still window was found"
         if args.json:
             print(json.dumps(dict(out, calibration=None, reason=reason, message=message)))
-        raise InputError(f"{args.recording}: no calibration published ({reason}): {message}")
+        raise CalibrationError(reason, f"{args.recording}: no calibration published: {message}")
     cal = result.calibration
     if args.out:
         with open(args.out, "w", encoding="utf-8") as fh:
