@@ -14,13 +14,20 @@ from selfcal.models import ErrorModel
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("recording", metavar="REC", help="recording CSV (kind=samples or kind=poses)")
+    parser.add_argument("recording", metavar="REC", nargs="+",
+                        help="recording(s): selfcal CSV (samples or poses), .cwa, .gt3x or .bin; several files: "
+                             "one calibration JSON each in --out-dir, one summary row each")
     parser.add_argument("--model", default="affine9", help="error model (scale6, affine9, affine9+effect...)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     parser.add_argument("--out", metavar="CAL.json", help="write the calibration JSON here")
     parser.add_argument("--history", metavar="FILE.jsonl",
                         help="write every published version here, one calibration JSON a line, in time order")
     parser.add_argument("--progress", action="store_true", help="progress bar on stderr")
+    parser.add_argument("--jobs", type=int, default=1, metavar="N", help="several files: N processes (default 1)")
+    parser.add_argument("--summary", metavar="SUMMARY.csv",
+                        help="several files: summary table (CSV, plus a Markdown report and a plot beside it)")
+    parser.add_argument("--out-dir", metavar="DIR",
+                        help="several files: where the calibration JSONs go (default: the summary's folder, or .)")
 
 
 def check_writable(path: str) -> None:
@@ -52,8 +59,39 @@ def write_history(path: str, result) -> int:
     return n
 
 
+def run_many(args) -> int:
+    """Several files: each in its own process; the exit code is the number of files that failed."""
+    from selfcal.batch import run_batch
+
+    if args.out or args.history or args.json:
+        raise InputError("--out, --history and --json take one recording; with several use --out-dir and --summary")
+    if args.jobs < 1:
+        raise InputError(f"--jobs: must be >= 1, got {args.jobs}")
+    if args.summary:
+        check_writable(args.summary)
+    out_dir = args.out_dir or (str(Path(args.summary).parent) if args.summary else ".")
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise InputError(f"--out-dir {out_dir}: is a file, not a folder")
+    load_config(args.config)  # a bad config is a usage error before any work
+    rows = run_batch(args.recording, args.model, args.config, out_dir, args.jobs, args.summary,
+                     progress=args.progress or sys.stderr.isatty())
+    failed = [r for r in rows if r["status"] in ("error", "uncalibrated")]
+    for r in rows:
+        print(f"{r['file']}: {r['status']}" + (f" ({r['refusal_reason'] or r['error']})" if r in failed else
+                                                f", predicted sphere {r['predicted_sphere_rms_mg']} mg"))
+    if args.summary:
+        print(f"summary: {args.summary} (+ {Path(args.summary).with_suffix('.md').name})")
+    print(f"{len(rows) - len(failed)} of {len(rows)} files calibrated; {len(failed)} failed", file=sys.stderr)
+    return min(len(failed), 100)
+
+
 def run(args) -> int:
     from selfcal.pipeline import calibrate_recording
+
+    ErrorModel(args.model)
+    if len(args.recording) > 1 or args.summary or args.jobs != 1:
+        return run_many(args)
+    args.recording = args.recording[0]
 
     ErrorModel(args.model)  # validate the name before reading anything
     cfg = load_config(args.config)
