@@ -571,13 +571,13 @@ def build_report(args) -> tuple[dict, dict]:
     diag_ok = False
     if args.effect_row:
         try:
-            from selfcal.diagnose import diagnose_poses  # noqa: F401
+            from selfcal.diagnosis import diagnose_poses  # noqa: F401
 
             diag_ok = True
         except Exception as exc:  # noqa: BLE001
             log(f"selfcal.diagnose not usable ({exc}); no selfcal+effect row")
     if diag_ok:
-        from selfcal.diagnose import diagnose_poses
+        from selfcal.diagnosis import diagnose_poses
 
         for ps in sims:
             if ps.effects:

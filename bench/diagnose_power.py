@@ -19,7 +19,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from effectgen import EFFECT_RANGES, hidden_effect_case  # noqa: E402
 
-from selfcal.diagnose import diagnose_poses  # noqa: E402
+from selfcal.diagnosis import diagnose_poses  # noqa: E402
 
 CFG = {"diagnose": {"n_sim": 2}}
 

@@ -193,7 +193,7 @@ def calibrate(recording, model: str = "affine9", config: dict | str | os.PathLik
 def diagnose(recording, config: dict | str | os.PathLike | None = None, base_model: str = "affine9") -> dict:
     """What the base model misses on a recording: the diagnosis report (dict, as ``selfcal diagnose --json``)."""
     from selfcal.config import load_config
-    from selfcal.diagnose import diagnose_recording
+    from selfcal.diagnosis import diagnose_recording
 
     rec = read(recording) if isinstance(recording, (str, os.PathLike)) else recording
     cfg = config if isinstance(config, dict) else load_config(config)

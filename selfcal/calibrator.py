@@ -201,7 +201,8 @@ class OnlineCalibrator:
         # no model-dependent gate: the poses that could refute the model are never filtered by it
         windows = self.detector.feed(t_s, acc_g, temp_c=temp_c, pressure_kpa=pressure_kpa, to_cal=None)
         self.n_samples += int(t_s.size)
-        self.t_last_s = float(t_s[-1])
+        # the calibrator's clock is the still windows' (not the chunk's last sample): refit
+        # times, and so every published version, do not depend on how a stream is chunked
         return self._take_windows(windows)
 
     def flush(self) -> list[dict]:

@@ -18,7 +18,7 @@ def _fmt(x, nd=3):
 def write_report(report: dict, out_dir: str | Path) -> Path:
     """Write ``report.md`` and PNG plots into ``out_dir``; returns the Markdown path.
 
-    ``report`` is :func:`selfcal.diagnose.diagnose_poses` output made with
+    ``report`` is :func:`selfcal.diagnosis.diagnose_poses` output made with
     ``keep_arrays=True``.
     """
     import matplotlib

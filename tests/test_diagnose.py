@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from effectgen import EFFECT_RANGES, hidden_effect_case
-from selfcal.diagnose import diagnose_poses, diagnose_recording
+from selfcal.diagnosis import diagnose_poses, diagnose_recording
 from selfcal.io import read_recording
 
 DATA = Path(__file__).resolve().parents[1] / "data"

@@ -16,7 +16,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from selfcal.diagnose import diagnose_recording
+    from selfcal.diagnosis import diagnose_recording
 
     cfg = load_config(args.config)
     if args.report:  # the report folder is created (with its parents) before the work starts
