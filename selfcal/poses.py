@@ -176,7 +176,10 @@ class PoseStore:
     # ------------------------------------------------------------------ cell views
     def _derived(self, rows: np.ndarray | slice | None = None):
         """(mean direction (k,3), mean d (k,), per-window noise variance (k,), scatter dof (k,))."""
-        s = self.stats if rows is None else self.stats[rows]
+        return self._derived_from(self.stats if rows is None else self.stats[rows])
+
+    def _derived_from(self, s: np.ndarray):
+        """:meth:`_derived` of a statistics table ``s`` (k, N_STATS)."""
         nw = s[:, _NW]
         su = s[:, _SU]
         ubar = su / nw[:, None]
@@ -241,38 +244,14 @@ class PoseStore:
         key = self._keys(u, temp, t_s)
         if not self._index and len(self):
             self._reindex()
-        # gate against the cells as they were before this batch (model-free)
-        rows = np.array([self._index.get(int(x), -1) for x in key], dtype=np.int64)
-        old = rows >= 0
-        gated = np.zeros(len(key), dtype=bool)
-        if old.any():
-            cand = rows[old]
-            enough = self.stats[cand, _NW] >= self.config.gate_min_windows
-            if enough.any():
-                _, dbar, v_win, _ = self._derived(cand)
-                thr = np.maximum(self.config.gate_k * np.sqrt(v_win), self.config.gate_abs_g)
-                off = np.abs(d[old] - dbar) > thr
-                g_idx = np.flatnonzero(old)[enough & off]
-                gated[g_idx] = True
+        row = self._rows(u, d, vn, count, t_s, temp)
+        # model-free gate, with the semantics of adding the windows one by one
+        gated = self._gate(key, row, d)
         if gated.any():
             key = key + gated.astype(np.int64)
         out["gated"] = int(gated.sum())
         self.n_gated += out["gated"]
         # accumulate per key
-        row = np.zeros((len(key), N_STATS))
-        row[:, _NW] = 1.0
-        row[:, _NS] = count
-        row[:, _SU] = u
-        for c, (i, j) in enumerate(_UU_IDX):
-            row[:, _SUU.start + c] = u[:, i] * u[:, j]
-        row[:, _SD] = d
-        row[:, _SDU] = d[:, None] * u
-        row[:, _SDD] = d * d
-        row[:, _SVN] = vn
-        row[:, _ST] = t_s
-        has_t = np.isfinite(temp)
-        row[:, _STEMP] = np.where(has_t, temp, 0.0)
-        row[:, _NTEMP] = has_t
         ukeys, inv = np.unique(key, return_inverse=True)
         sums = np.zeros((len(ukeys), N_STATS))
         np.add.at(sums, inv, row)
@@ -328,6 +307,69 @@ class PoseStore:
         first = np.sort(first)
         fresh = np.array([int(key[i]) not in self._index for i in first], dtype=bool)
         return idx[first[fresh]]
+
+    @staticmethod
+    def _rows(u, d, vn, count, t_s, temp) -> np.ndarray:
+        """Statistics of single windows (k, N_STATS)."""
+        row = np.zeros((len(d), N_STATS))
+        row[:, _NW] = 1.0
+        row[:, _NS] = count
+        row[:, _SU] = u
+        for c, (i, j) in enumerate(_UU_IDX):
+            row[:, _SUU.start + c] = u[:, i] * u[:, j]
+        row[:, _SD] = d
+        row[:, _SDU] = d[:, None] * u
+        row[:, _SDD] = d * d
+        row[:, _SVN] = vn
+        row[:, _ST] = t_s
+        has_t = np.isfinite(temp)
+        row[:, _STEMP] = np.where(has_t, temp, 0.0)
+        row[:, _NTEMP] = has_t
+        return row
+
+    def _gate_one(self, running: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Gate decisions (k,) of windows with norms ``d`` against their cells' running statistics."""
+        enough = running[:, _NW] >= self.config.gate_min_windows
+        out = np.zeros(len(d), dtype=bool)
+        if enough.any():
+            _, dbar, v_win, _ = self._derived_from(running[enough])
+            thr = np.maximum(self.config.gate_k * np.sqrt(v_win), self.config.gate_abs_g)
+            out[enough] = np.abs(d[enough] - dbar) > thr
+        return out
+
+    def _gate(self, key: np.ndarray, row: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Which windows go to their cell's outlier twin, exactly as if added one at a time.
+
+        Each window is compared with its cell as it stands just before it (stored windows
+        plus the earlier, not gated, windows of this batch): vectorised with running sums,
+        and a group that a gate decision changes is redone window by window. The result
+        does not depend on how the windows were split into calls.
+        """
+        k = len(key)
+        order = np.argsort(key, kind="stable")
+        ks, rs, ds = key[order], row[order], d[order]
+        start = np.r_[True, ks[1:] != ks[:-1]]
+        first = np.maximum.accumulate(np.where(start, np.arange(k), 0))
+        csum = np.cumsum(rs, axis=0)
+        before = csum - rs - (csum[first] - rs[first])  # earlier windows of the same key, this batch
+        idx = np.array([self._index.get(int(x), -1) for x in ks], dtype=np.int64)
+        pre = np.zeros((k, N_STATS))
+        if (idx >= 0).any():
+            pre[idx >= 0] = self.stats[idx[idx >= 0]]
+        gated_s = self._gate_one(pre + before, ds)
+        last = np.r_[ks[1:] != ks[:-1], True]
+        redo = np.unique(ks[gated_s & ~last])  # a gated window with later windows in its group
+        for kk in redo:
+            pos = np.flatnonzero(ks == kk)
+            run = pre[pos[0]].copy()
+            for p_ in pos:
+                g = bool(self._gate_one(run[None, :], ds[p_: p_ + 1])[0])
+                gated_s[p_] = g
+                if not g:
+                    run += rs[p_]
+        gated = np.zeros(k, dtype=bool)
+        gated[order] = gated_s
+        return gated
 
     def _bound(self) -> None:
         """Coarsen the oldest half of the time range (merge block pairs), then drop if needed."""
