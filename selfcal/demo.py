@@ -708,7 +708,8 @@ class _Demo:
                 "samples_stored": stored,
                 "status": cal.get("status", "unknown"),
                 "sphere_norm_rms_mg": sphere,
-                "predicted_sphere_rms_mg": cal.get("predicted_sphere_rms_mg"),
+                "predicted_sphere_rms_mg": (None if cal.get("predicted_sphere_rms_mg") is None
+                                            else round(float(cal["predicted_sphere_rms_mg"]), 4)),
                 "promise_kept": (None if sphere is None or cal.get("predicted_sphere_rms_mg") is None
                                  else bool(sphere <= 2.5 * cal["predicted_sphere_rms_mg"] + 0.05)),
                 "uncalibrated_sphere_norm_rms_mg": raw_sphere,

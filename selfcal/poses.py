@@ -142,6 +142,7 @@ class PoseStore:
     n_gated: int = 0
     n_merged: int = 0
     n_dropped: int = 0
+    t_origin: float | None = None  # time of the first window: blocks are counted from it
     _index: dict = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -156,18 +157,18 @@ class PoseStore:
         self._index = {int(k): i for i, k in enumerate(self.key)}
 
     # ------------------------------------------------------------------ keys
-    def _keys(self, u: np.ndarray, temp: np.ndarray, t_s: np.ndarray, outlier: np.ndarray | None = None) -> np.ndarray:
-        """Cell keys of windows (level 0)."""
+    def _keys(self, u: np.ndarray, temp: np.ndarray, t_s: np.ndarray, origin: float | None = None) -> np.ndarray:
+        """Cell keys of windows (level 0); time blocks counted from ``origin`` (default the store's)."""
         step = np.radians(self.config.merge_angle_deg)
         g = np.rint(u / step).astype(np.int64) + 64  # 0..128 for step >= ~0.9 deg
         band = np.where(np.isfinite(temp), np.floor(np.nan_to_num(temp) / self.config.merge_temp_c), 0).astype(np.int64)
         band = np.where(np.isfinite(temp), np.clip(band + 512, 0, _NO_TEMP_BAND - 1), _NO_TEMP_BAND)
-        block = np.floor(t_s / self.config.block_s).astype(np.int64) + (1 << 20)
+        # blocks counted from the first window: a constant shift of the device clock changes nothing
+        if origin is None:
+            origin = self.t_origin if self.t_origin is not None else 0.0
+        block = np.floor((t_s - origin) / self.config.block_s).astype(np.int64) + (1 << 20)
         key = ((block * 1024 + band) * 256 + g[:, 0]) * 256 + g[:, 1]
-        key = (key * 256 + g[:, 2]) * 32  # 5 low bits: level (4) and outlier flag (1)
-        if outlier is not None:
-            key = key + outlier.astype(np.int64)
-        return key
+        return (key * 256 + g[:, 2]) * 32  # 5 low bits: level (4) and outlier flag (1)
 
     @staticmethod
     def _level(key: np.ndarray) -> np.ndarray:
@@ -241,6 +242,8 @@ class PoseStore:
         u = mean / norm[:, None]
         d = norm - 1.0
         vn = window_noise_var(u, sd, count, rate_hz, self.config) + self.config.window_floor_g**2
+        if self.t_origin is None:
+            self.t_origin = float(t_s[0])
         key = self._keys(u, temp, t_s)
         if not self._index and len(self):
             self._reindex()
@@ -300,7 +303,8 @@ class PoseStore:
         idx = np.flatnonzero(valid)
         if idx.size == 0:
             return idx
-        key = self._keys(mean[idx] / norm[idx, None], temp[idx], t_s[idx])
+        origin = self.t_origin if self.t_origin is not None else float(t_s[idx[0]])
+        key = self._keys(mean[idx] / norm[idx, None], temp[idx], t_s[idx], origin)
         if not self._index and len(self):
             self._reindex()
         _, first = np.unique(key, return_index=True)
@@ -509,6 +513,7 @@ class PoseStore:
             "n_gated": self.n_gated,
             "n_merged": self.n_merged,
             "n_dropped": self.n_dropped,
+            "t_origin": self.t_origin,
         }
 
     @classmethod
@@ -520,7 +525,7 @@ class PoseStore:
             _dec(d["stats"], (N_STATS,)),
             _dec(d["t_first"]),
             _dec(d["t_last"]),
-            int(d["n_seen"]), int(d["n_gated"]), int(d["n_merged"]), int(d["n_dropped"]),
+            int(d["n_seen"]), int(d["n_gated"]), int(d["n_merged"]), int(d["n_dropped"]), d.get("t_origin"),
         )
         obj._reindex()
         return obj

@@ -39,3 +39,13 @@ def test_chunking_changes_nothing_and_outliers_are_kept_apart():
             np.testing.assert_array_equal(a.key[ia], b.key[ib])
             np.testing.assert_allclose(a.stats[ia], b.stats[ib], rtol=1e-9, atol=1e-9)
     assert whole.n_gated > 0 and whole.outlier_twin().sum() > 0
+
+
+def test_a_shifted_device_clock_changes_no_cell():
+    rng = np.random.default_rng(6)
+    mean, sd, n, t, temp = windows(rng, 800)
+    a, b = PoseStore.empty(), PoseStore.empty()
+    a.add(mean, sd, n, t, temp)
+    b.add(mean, sd, n, t + 1234.567, temp)  # the insole's clock started earlier
+    np.testing.assert_array_equal(np.sort(a.key), np.sort(b.key))
+    np.testing.assert_allclose(a.window_counts()[np.argsort(a.key)], b.window_counts()[np.argsort(b.key)])
