@@ -234,6 +234,9 @@ class Recording:
 #: Device formats recognised by their suffix (decoded by ``selfcal.devices`` through actfast).
 BINARY_DEVICE_SUFFIXES = {".cwa": "Axivity CWA", ".gt3x": "ActiGraph GT3X", ".bin": "GENEActiv BIN"}
 
+_EXAMPLE = ("; a recording starts with the lines '# selfcal-recording v1' and '# kind=samples' (or "
+            "'# kind=poses') above a header with the unit in every name, e.g. 't_s,ax_g,ay_g,az_g,temp_c'")
+
 def _check_fields(rec: Recording) -> None:
     """Check kinds, units and shapes of a Recording; raise InputError naming the field."""
     where = rec.path if rec.path is not None else "Recording"
@@ -349,12 +352,12 @@ def _parse_preamble(path: str, lines: list[str]) -> tuple[int, str, dict[str, st
                 meta[key] = value
             continue
         if not magic_seen:
-            raise _error(path, i + 1, 1, f"missing magic line {MAGIC_LINE!r} before the header row")
+            raise _error(path, i + 1, 1, f"missing magic line {MAGIC_LINE!r} before the header row{_EXAMPLE}")
         if kind is None:
             raise _error(path, i + 1, 1, "missing '# kind=samples' or '# kind=poses' line before the header row")
         return i, kind, meta
     if not magic_seen:
-        raise _error(path, 1, 1, f"missing magic line {MAGIC_LINE!r} (file has no comment line)")
+        raise _error(path, 1, 1, f"missing magic line {MAGIC_LINE!r} (file has no comment line){_EXAMPLE}")
     raise _error(path, len(lines), 1, "no header row (file has only comments)")
 
 
