@@ -91,10 +91,10 @@ class SchedulerConfig(BaseModel):
     cell_floor_g: float = Field(
         1e-4, gt=0, description="least shared error of one pose cell (repeats in a cell do not average it down), g")
     process_noise_bias_g_per_sqrt_day: float = Field(
-        2e-4, ge=0, description="random-walk sd of the offsets per sqrt(day): older cells weigh less, g"
+        5e-5, ge=0, description="random-walk sd of the offsets per sqrt(day): older cells weigh less, g"
     )
     process_noise_scale_per_sqrt_day: float = Field(
-        1e-4, ge=0, description="random-walk sd of the scales per sqrt(day), relative"
+        2.5e-5, ge=0, description="random-walk sd of the scales per sqrt(day), relative"
     )
 
     @classmethod

@@ -265,9 +265,11 @@ class NoiseModel:
 
     var_axis: np.ndarray
     floor2: float
+    nonlin: tuple | None = None  # (model, raw_u, temp_c, t_s) when the model has scale_nonlinearity
 
     @classmethod
-    def from_poses(cls, mean_u, sd_u, count, cfg: "FitConfig") -> "NoiseModel":
+    def from_poses(cls, mean_u, sd_u, count, cfg: "FitConfig", model: "ErrorModel | None" = None,
+                   temp_c=None, t_s=None) -> "NoiseModel":
         norm = np.linalg.norm(mean_u, axis=1, keepdims=True)
         ghat = mean_u / np.where(norm > 0, norm, 1.0)
         if sd_u is None:
@@ -275,13 +277,39 @@ class NoiseModel:
         # the floor is unexplained error of the measurement: in the raw domain, like noise,
         # so that it too follows the scales (a fixed floor leaves a shrink incentive)
         var = sd_u**2 / np.asarray(count, dtype=float)[:, None] + cfg.sigma_floor_g**2
-        return cls(ghat**2 * var, 0.0)
+        nonlin = None
+        if model is not None and "scale_nonlinearity" in model.effects:
+            nonlin = (model, np.asarray(mean_u, dtype=float), temp_c, t_s)
+        return cls(ghat**2 * var, 0.0, nonlin)
+
+    def scaled(self, weights: np.ndarray) -> "NoiseModel":
+        """The same model with each pose's variance divided by ``weights`` (n,)."""
+        return NoiseModel(self.var_axis / weights[:, None], self.floor2, self.nonlin)
 
     def __call__(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(sigma (n,), d sigma / d s (n, 3))`` at parameters ``theta`` (scales at 3:6)."""
-        s = np.asarray(theta[3:6], dtype=float)
-        sigma = np.sqrt(self.var_axis @ (s * s) + self.floor2)
-        return sigma, self.var_axis * s / sigma[:, None]
+        """``(sigma (n,), d sigma / d theta (n, p))`` at parameters ``theta`` (scales at 3:6).
+
+        The gain from raw noise to the calibrated norm along gravity is ``s_j`` per axis;
+        with ``scale_nonlinearity`` it is ``s_j (1 - 2 q_j l_j)`` (``l`` the linear
+        calibrated value): without that factor, the ``bz``-``sz``-``qz`` direction that
+        norms cannot see on an insole would buy a lower cost by inflating every sigma.
+        """
+        theta = np.asarray(theta, dtype=float)
+        s = theta[3:6]
+        dsig = np.zeros((self.var_axis.shape[0], theta.shape[0]))
+        if self.nonlin is None:
+            sigma = np.sqrt(self.var_axis @ (s * s) + self.floor2)
+            dsig[:, 3:6] = self.var_axis * s / sigma[:, None]
+            return sigma, dsig
+        model, raw_u, temp, t_s = self.nonlin
+        sl = model.index("scale_nonlinearity")
+        q = theta[sl]
+        lin = model._forward(theta, raw_u, temp, t_s)[1][2]
+        gain = s * (1.0 - 2.0 * q * lin)
+        sigma = np.sqrt(np.sum(self.var_axis * gain * gain, axis=1) + self.floor2)
+        dsig[:, 3:6] = self.var_axis * gain * (1.0 - 4.0 * q * lin) / sigma[:, None]
+        dsig[:, sl] = self.var_axis * gain * (-2.0 * s * lin) / sigma[:, None]
+        return sigma, dsig
 
 
 # --------------------------------------------------------------------------- LM
@@ -357,7 +385,7 @@ def lm_solve(
             sig, dsig = noise(theta)
             rw = r / sig
             jw = j / sig[:, None]
-            jw[:, 3:6] -= (rw / sig)[:, None] * dsig
+            jw -= (rw / sig)[:, None] * dsig
         d = theta - mu
         cost = 0.5 * (rw @ rw + d @ lam_p @ d)
         return r, j, rw, jw, d, cost
@@ -730,7 +758,7 @@ def fit_poses(
         raise InputError(f"prior: expected {model.n_params} parameters for {model.name}")
     raw_u = normalizer.to_u(poses.mean)
     sd_u = None if poses.sd is None else poses.sd / normalizer.scale
-    noise = NoiseModel.from_poses(raw_u, sd_u, poses.count, cfg)
+    noise = NoiseModel.from_poses(raw_u, sd_u, poses.count, cfg, model, poses.temp_c, poses.t_s)
     sigma = noise(prior.mean)[0]
     temp = poses.temp_c
     if temp is None and any(e.startswith("temperature") for e in model.effects):
@@ -796,7 +824,7 @@ def fit_poses(
                 if np.max(np.abs(w_new - weights)) < 1e-3:
                     break
                 weights = w_new
-                res = lm_solve(model, best.x, raw_u, NoiseModel(noise.var_axis / weights[:, None], noise.floor2),
+                res = lm_solve(model, best.x, raw_u, noise.scaled(weights),
                                prior, temp, t_s, cfg)
                 if res.success or not best.success:
                     best = res
