@@ -178,16 +178,20 @@ def calibrate(recording, model: str = "affine9", config: dict | str | os.PathLik
     InputError — a bad file or argument
     """
     from selfcal.config import load_config
-    from selfcal.pipeline import calibrate_recording
+    from selfcal.pipeline import calibrate_path, calibrate_recording
 
     ErrorModel(model)
-    rec = read(recording) if isinstance(recording, (str, os.PathLike)) else recording
     cfg = config if isinstance(config, dict) else load_config(config)
-    run = calibrate_recording(rec, model, cfg, progress=progress)
+    if isinstance(recording, (str, os.PathLike)):  # a file is streamed in blocks (bounded memory)
+        run = calibrate_path(recording, model, cfg, progress=progress)
+        source = os.fspath(recording)
+    else:
+        run = calibrate_recording(recording, model, cfg, progress=progress)
+        source = str(recording.path)
     if run.calibration is None:
         last = run.last_refit or {}
         raise CalibrationError(last.get("reason") or "no_still_poses", last.get("message") or "no still window found")
-    return Calibration.from_json(run.calibration, source=str(rec.path))
+    return Calibration.from_json(run.calibration, source=source)
 
 
 def diagnose(recording, config: dict | str | os.PathLike | None = None, base_model: str = "affine9") -> dict:

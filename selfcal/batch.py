@@ -2,7 +2,9 @@
 
 Used by ``selfcal calibrate FILE... [--jobs N] [--summary summary.csv] [--out-dir DIR]``.
 Every file gets a calibration JSON (``DIR/<name>.cal.json``) and a summary row; a file
-that cannot be read or calibrated gets a row with its error, and the run goes on. The
+that cannot be read or calibrated gets a row with its error, and the run goes on. Files
+are streamed (bounded memory per process); duration and temperature range are those of
+the still windows. The
 summary is written as CSV and, as GGIR users expect, as a Markdown report with one plot
 (the still-pose error before against after, per file).
 """
@@ -30,22 +32,22 @@ def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str) 
     """Calibrate one file; never raises: an error becomes the row's ``error``."""
     from selfcal.config import load_config
     from selfcal.errors import SelfcalError
-    from selfcal.io import read_recording
-    from selfcal.pipeline import calibrate_recording
+    from selfcal.io import iter_recording
+    from selfcal.pipeline import calibrate_path
 
     t0 = time.perf_counter()
     row: dict = {k: None for k in SUMMARY_COLUMNS}
     row.update(file=path, model=model)
     try:
-        rec = read_recording(path)
-        row["device"] = rec.meta.get("device") or rec.meta.get("sensor") or rec.meta.get("format")
-        if len(rec):
-            row["duration_h"] = round(float(rec.t_s[-1] - rec.t_s[0]) / 3600.0, 4)
-        if rec.temp_c is not None and np.any(np.isfinite(rec.temp_c)):
-            row["temp_min_c"] = round(float(np.nanmin(rec.temp_c)), 2)
-            row["temp_max_c"] = round(float(np.nanmax(rec.temp_c)), 2)
-        run = calibrate_recording(rec, model, load_config(config_path))
+        head = next(iter_recording(path, block_rows=1))  # the preamble and the first row, for the metadata
+        row["device"] = head.meta.get("device") or head.meta.get("sensor") or head.meta.get("format")
+        run = calibrate_path(path, model, load_config(config_path))  # streamed: bounded memory
         store = run.calibrator.store
+        summ = store.summary()
+        if summ["t_span_s"]:
+            row["duration_h"] = round((summ["t_span_s"][1] - summ["t_span_s"][0]) / 3600.0, 4)
+        if summ["temp_range_c"]:
+            row["temp_min_c"], row["temp_max_c"] = (round(x, 2) for x in summ["temp_range_c"])
         row["n_poses"] = len(store)
         row["n_windows"] = int(store.window_counts().sum()) if len(store) else 0
         if len(store):

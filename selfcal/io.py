@@ -42,6 +42,9 @@ Python loop runs only to locate the exact cell of an error.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
+import itertools
 import os
 import re
 import tempfile
@@ -567,14 +570,28 @@ def read_recording(path: str | os.PathLike) -> Recording:
     header_line = h + 1
     names = [c.strip() for c in lines[h].split(",")]
     layout = _parse_header(name, header_line, names, kind)
-    n_cols = len(names)
+    rec = _parse_block(name, names, layout, kind, meta, lines[h + 1:], h + 2, header_line, None)
+    if rec is None:
+        raise _error(name, header_line, 1, "empty table: no data rows after the header row")
+    rec.__dict__.pop("_last_line", None)
+    return rec
 
-    body = lines[h + 1 :]
+
+def _parse_block(name: str, names: list[str], layout: "_Layout", kind: str, meta: dict[str, str],
+                 body: list[str], first_line: int, header_line: int, prev_t: float | None,
+                 prev_line: int | None = None) -> Recording | None:
+    """Parse data lines (``body``, the first at file line ``first_line``) into a Recording.
+
+    Every check of :func:`read_recording` applies, with the file's line numbers;
+    ``prev_t`` (s) is the last time of the previous block (``t_s`` must not decrease
+    across blocks). Returns None when the block holds no data row.
+    """
+    n_cols = len(names)
     keep = [k for k, line in enumerate(body) if (s := line.strip()) and s[0] != "#"]
     if not keep:
-        raise _error(name, header_line, 1, "empty table: no data rows after the header row")
+        return None
     rows = body if len(keep) == len(body) else [body[k] for k in keep]
-    line_nos = np.asarray(keep, dtype=np.int64) + (h + 2)
+    line_nos = np.asarray(keep, dtype=np.int64) + first_line
 
     n_fields = np.fromiter((r.count(",") for r in rows), dtype=np.int64, count=len(rows)) + 1
     ragged = np.flatnonzero(n_fields != n_cols)
@@ -611,10 +628,16 @@ def read_recording(path: str | os.PathLike) -> Recording:
             values, line_nos = values[keep_rows], line_nos[keep_rows]
             text_cols = {j: col[keep_rows] for j, col in text_cols.items()}
             if values.shape[0] == 0:
+                if prev_t is not None:
+                    return None
                 raise _error(name, header_line, 1,
                              f"empty table: all {n_dropped} data rows have a blank t_s, acceleration or sd cell")
 
     t_s = values[:, layout.t]
+    if prev_t is not None and t_s[0] < prev_t:
+        raise _error(name, int(line_nos[0]), layout.t + 1,
+                     f"{_col(names, layout.t)}: t_s decreases ({float(t_s[0])!r} after {float(prev_t)!r}"
+                     + (f" on line {prev_line})" if prev_line is not None else ")"))
     back = np.flatnonzero(np.diff(t_s) < 0)
     if back.size:
         k = int(back[0]) + 1
@@ -637,8 +660,9 @@ def read_recording(path: str | os.PathLike) -> Recording:
         return None if idx is None else np.ascontiguousarray(values[:, idx])
 
     extra = {names[j]: (text_cols[j] if j in text_cols else values[:, j].copy()) for j in layout.extra}
+    meta = dict(meta)
     meta["dropped_rows"] = str(n_dropped)
-    return Recording(
+    rec = Recording(
         kind=kind,
         unit=layout.unit,
         t_s=t_s.copy(),
@@ -654,6 +678,95 @@ def read_recording(path: str | os.PathLike) -> Recording:
         meta=meta,
         path=name,
     )
+    rec._last_line = int(line_nos[-1])  # for the next block's t_s check (not a field, not in meta)
+    return rec
+
+
+def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=None) -> Iterator[Recording]:
+    """Stream a recording in blocks of at most ``block_rows`` rows, in bounded memory.
+
+    Yields :class:`Recording` blocks (same kind, unit and columns; ``meta['dropped_rows']``
+    per block). Every check and error of :func:`read_recording` applies, with the file's
+    own line numbers, including rows of the last block and a ``t_s`` that decreases
+    across a block edge. Device files (decoded whole by actfast) come as one block.
+    ``progress(n_bytes)`` is called after each block with the bytes read so far.
+    """
+    name = os.fspath(path)
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{name}: is a directory, not a recording file")
+    if p.suffix.lower() in BINARY_DEVICE_SUFFIXES:
+        yield read_recording(path)
+        return
+    if block_rows < 1:
+        raise InputError(f"block_rows must be >= 1, got {block_rows}")
+    try:
+        fh = p.open("rb")
+    except FileNotFoundError as exc:
+        raise InputError(f"{name}: no such file") from exc
+    except OSError as exc:
+        raise InputError(f"{name}: cannot read the file ({exc.strerror or exc})") from exc
+    with fh:
+        def decode(raw: bytes, at_line: int) -> str:
+            try:
+                return raw.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise InputError(
+                    f"{name}:{at_line}: not UTF-8 text ({exc.reason}); accepted: a selfcal recording CSV "
+                    "('# selfcal-recording v1' header, units in every column name), or an Axivity .cwa, "
+                    "ActiGraph .gt3x or GENEActiv .bin file") from exc
+
+        head = fh.read(65536)  # a binary file is refused up front, naming what is accepted
+        try:
+            head.decode("utf-8")
+            binary = b"\x00" in head
+        except UnicodeDecodeError as exc:
+            binary = exc.start < len(head) - 4  # not just a character cut at the end of the peek
+        if binary:
+            raise InputError(
+                f"{name}: not UTF-8 text (binary data); accepted: a selfcal recording CSV ('# selfcal-recording "
+                "v1' header, units in every column name), or an Axivity .cwa, ActiGraph .gt3x or GENEActiv .bin file")
+        fh.seek(0)
+        pre: list[str] = []
+        while True:  # the preamble and the header row
+            raw = fh.readline()
+            if not raw:
+                break
+            line = decode(raw, len(pre) + 1)
+            if not pre:
+                line = line.lstrip("\ufeff")
+            line = line.rstrip("\r\n")
+            pre.append(line)
+            s_ = line.strip()
+            if s_ and not s_.startswith("#"):
+                break
+        if not any(x.strip() for x in pre):
+            raise InputError(f"{name}: the file is empty")
+        h, kind, meta = _parse_preamble(name, pre)
+        header_line = h + 1
+        names = [c.strip() for c in pre[h].split(",")]
+        layout = _parse_header(name, header_line, names, kind)
+        next_line = h + 2
+        prev_t = prev_line = None
+        any_rows = False
+        while True:
+            chunk = list(itertools.islice(fh, block_rows))
+            if not chunk:
+                break
+            body = decode(b"".join(chunk), next_line).replace("\r\n", "\n").replace("\r", "\n").split("\n")
+            if body and body[-1] == "":
+                body.pop()
+            rec = _parse_block(name, names, layout, kind, meta, body, next_line, header_line, prev_t, prev_line)
+            next_line += len(chunk)
+            if progress is not None:
+                progress(fh.tell())
+            if rec is None:
+                continue
+            any_rows = True
+            prev_t, prev_line = float(rec.t_s[-1]), rec.__dict__.pop("_last_line")
+            yield rec
+        if not any_rows:
+            raise _error(name, header_line, 1, "empty table: no data rows after the header row")
 
 
 # --------------------------------------------------------------------------- writing

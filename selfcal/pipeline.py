@@ -203,6 +203,77 @@ def calibrate_recording(
     )
 
 
+def calibrate_path(
+    path,
+    model: str = "affine9",
+    config: dict | None = None,
+    progress: bool = False,
+    block_rows: int = 100_000,
+) -> CalibrationRun:
+    """Calibrate a recording file, streaming a samples table in blocks (bounded memory).
+
+    A samples table in g or m/s² is read block by block (:func:`selfcal.io.iter_recording`)
+    straight into the online calibrator: only still poses stay in memory, whatever the
+    file's length. The result equals :func:`calibrate_recording` on the whole file (test:
+    ``tests/test_streaming.py``). Poses tables (small), device files (decoded whole) and
+    raw-counts tables (their counts-per-g scale needs every still window first) are read
+    whole. Progress is by bytes read.
+    """
+    import os
+
+    from selfcal.io import iter_recording, read_recording
+
+    config = copy.deepcopy(config or {})
+    size = max(os.path.getsize(path), 1) if os.path.exists(path) else 1
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=size, unit="B", unit_scale=True, file=sys.stderr, desc="calibrate")
+
+    def read_so_far(n_bytes: int) -> None:
+        if bar is not None:
+            bar.update(max(0, min(n_bytes, size) - bar.n))
+
+    blocks = iter_recording(path, block_rows, progress=read_so_far)
+    first = next(blocks)
+    if first.kind != "samples" or first.unit == "counts" or len(first) == 0:
+        if bar:
+            bar.close()
+        return calibrate_recording(read_recording(path), model, config, progress=False)
+    normalizer = guess_normalizer(first.unit)
+    rate = first.rate_hz() if len(first) > 1 else 20.0
+    cal = OnlineCalibrator(_detector_config(config, rate, loose_norm=False), model)
+    events: list[dict] = []
+    n_rows = 0
+
+    def feed(rec):
+        nonlocal n_rows
+        pres = rec.pressure_kpa() if rec.pressure is not None and rec.pressure_unit in ("kpa", "ncm2") else None
+        for i in range(0, len(rec.t_s), CHUNK_SAMPLES):
+            sl = slice(i, i + CHUNK_SAMPLES)
+            events.extend(cal.feed_samples(rec.t_s[sl], normalizer.to_u(rec.acc[sl]),
+                                           None if rec.temp_c is None else rec.temp_c[sl],
+                                           None if pres is None else pres[sl]))
+        n_rows += len(rec)
+
+    feed(first)
+    for rec in blocks:
+        if rec.unit != first.unit:
+            raise InputError(f"{path}: unit changed between blocks")
+        feed(rec)
+    events.extend(cal.flush())
+    if bar:
+        bar.update(size - bar.n)
+        bar.close()
+    notes: list[str] = []
+    return CalibrationRun(
+        calibration=to_raw_calibration(cal, normalizer, first.unit), status=cal.status, last_refit=cal.last_refit,
+        calibrator=cal, normalizer=normalizer, n_windows=int(cal.store.n_seen), events=events, notes=notes,
+        unit=first.unit,
+    )
+
+
 def to_raw_calibration(cal: OnlineCalibrator, normalizer: Normalizer, unit: str) -> dict | None:
     """The calibrator's published model expressed in the recording's unit (contract JSON)."""
     cur = cal.calibration()

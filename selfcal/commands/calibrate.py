@@ -98,8 +98,10 @@ def run(args) -> int:
     for target in (args.out, args.history):  # fail before the work, not after it
         if target:
             check_writable(target)
-    rec = read_recording(args.recording)
-    result = calibrate_recording(rec, args.model, cfg, progress=args.progress or sys.stderr.isatty())
+    from selfcal.pipeline import calibrate_path
+
+    # streamed in blocks: only the still poses stay in memory, whatever the file's length
+    result = calibrate_path(args.recording, args.model, cfg, progress=args.progress or sys.stderr.isatty())
     if args.history:
         write_history(args.history, result)
     out = {
