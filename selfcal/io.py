@@ -682,6 +682,75 @@ def _parse_block(name: str, names: list[str], layout: "_Layout", kind: str, meta
     return rec
 
 
+class _FastBlocks:
+    """pyarrow's C CSV parser for blocks that need none of the exact parser's judgement.
+
+    ``parse`` returns a Recording only when the block is clean: every cell numeric and
+    present, every required value finite, ``t_s`` non-decreasing (also across the block
+    edge), no comment line. Otherwise it returns None and the caller runs the exact
+    parser, which gives the same arrays or the line-numbered error.
+    """
+
+    def __init__(self, names, layout, kind, meta, name):
+        self.names, self.layout, self.kind, self.meta, self.name = names, layout, kind, meta, name
+        try:
+            import pyarrow as pa
+            import pyarrow.csv as pacsv
+        except ImportError:  # optional: the exact parser does everything, slower
+            self.ok = False
+            return
+        self.ok = len(set(names)) == len(names)
+        self.pa, self.pacsv = pa, pacsv
+        self.header = (",".join(names) + "\n").encode("utf-8")
+
+    def parse(self, chunk: list[bytes], first_line: int, prev_t: float | None) -> Recording | None:
+        if not self.ok:
+            return None
+        data = b"".join(chunk)
+        if b"#" in data or b"\r" in data:
+            return None
+        pa, pacsv = self.pa, self.pacsv
+        try:
+            table = pacsv.read_csv(
+                pa.py_buffer(self.header + data),
+                read_options=pacsv.ReadOptions(use_threads=False, block_size=max(1 << 20, len(data) + 1024)),
+                parse_options=pacsv.ParseOptions(newlines_in_values=False),
+                convert_options=pacsv.ConvertOptions(column_types={n: pa.float64() for n in self.names},
+                                                     strings_can_be_null=False, quoted_strings_can_be_null=False),
+            )
+        except (pa.ArrowInvalid, pa.ArrowTypeError, ValueError):
+            return None
+        if table.num_rows != len(chunk) or any(col.null_count for col in table.columns):
+            return None  # blank lines or cells: the exact parser's semantics
+        values = np.column_stack([table.column(i).to_numpy() for i in range(len(self.names))])
+        lay = self.layout
+        if not np.all(np.isfinite(values[:, lay.required()])):
+            return None
+        t_s = values[:, lay.t]
+        if (prev_t is not None and t_s[0] < prev_t) or np.any(np.diff(t_s) < 0):
+            return None
+        n_windows = None
+        if lay.n is not None:
+            nf = values[:, lay.n]
+            if not np.all(np.isfinite(nf) & (nf >= 0) & (nf == np.round(nf))):
+                return None
+            n_windows = nf.astype(np.int64)
+
+        def cols(idx):
+            return None if idx is None else np.ascontiguousarray(values[:, idx])
+
+        meta = dict(self.meta)
+        meta["dropped_rows"] = "0"
+        rec = Recording(
+            kind=self.kind, unit=lay.unit, t_s=t_s.copy(), acc=cols(lay.acc), temp_c=cols(lay.temp),
+            pressure=cols(lay.pressure) if lay.pressure else None, pressure_unit=lay.pressure_unit,
+            gyro_dps=cols(lay.gyro), sd=cols(lay.sd), duration_s=cols(lay.duration), n=n_windows,
+            extra={self.names[j]: values[:, j].copy() for j in lay.extra}, meta=meta, path=self.name,
+        )
+        rec._last_line = first_line + len(chunk) - 1
+        return rec
+
+
 def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=None) -> Iterator[Recording]:
     """Stream a recording in blocks of at most ``block_rows`` rows, in bounded memory.
 
@@ -749,14 +818,17 @@ def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=
         next_line = h + 2
         prev_t = prev_line = None
         any_rows = False
+        fast = _FastBlocks(names, layout, kind, meta, name)
         while True:
             chunk = list(itertools.islice(fh, block_rows))
             if not chunk:
                 break
-            body = decode(b"".join(chunk), next_line).replace("\r\n", "\n").replace("\r", "\n").split("\n")
-            if body and body[-1] == "":
-                body.pop()
-            rec = _parse_block(name, names, layout, kind, meta, body, next_line, header_line, prev_t, prev_line)
+            rec = fast.parse(chunk, next_line, prev_t)  # pyarrow, when the block is clean
+            if rec is None:  # anything unusual: the exact parser, with its line-numbered errors
+                body = decode(b"".join(chunk), next_line).replace("\r\n", "\n").replace("\r", "\n").split("\n")
+                if body and body[-1] == "":
+                    body.pop()
+                rec = _parse_block(name, names, layout, kind, meta, body, next_line, header_line, prev_t, prev_line)
             next_line += len(chunk)
             if progress is not None:
                 progress(fh.tell())

@@ -79,3 +79,29 @@ def test_errors_keep_their_line_numbers_in_the_last_block_and_across_an_edge(rec
     p2.write_text("\n".join(back) + "\n")
     with pytest.raises(InputError, match=rf"back.csv:{edge + 1}:1: .*t_s decreases"):
         list(iter_recording(p2, block_rows=5000))
+
+
+def test_clean_blocks_take_the_fast_parser_and_agree_with_the_exact_one(recording, monkeypatch):
+    pytest.importorskip("pyarrow")
+    import selfcal.io as io_mod
+
+    path, _ = recording
+    exact = list(iter_recording(path, block_rows=9000))
+    calls = {"fast": 0}
+    orig = io_mod._FastBlocks.parse
+
+    def spy(self, *a, **k):
+        out = orig(self, *a, **k)
+        calls["fast"] += out is not None
+        return out
+
+    monkeypatch.setattr(io_mod._FastBlocks, "parse", spy)
+    fast = list(iter_recording(path, block_rows=9000))
+    assert calls["fast"] == len(fast) > 2
+    monkeypatch.setattr(io_mod._FastBlocks, "parse", lambda self, *a, **k: None)
+    slow = list(iter_recording(path, block_rows=9000))
+    for a, b in zip(fast, slow):
+        np.testing.assert_array_equal(a.t_s, b.t_s)
+        np.testing.assert_array_equal(a.acc, b.acc)
+        np.testing.assert_array_equal(a.temp_c, b.temp_c)
+    assert len(exact) == len(fast)
