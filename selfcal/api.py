@@ -199,8 +199,7 @@ def diagnose(recording, config: dict | str | os.PathLike | None = None, base_mod
     from selfcal.config import load_config
     from selfcal.diagnosis import diagnose_recording
 
-    rec = read(recording) if isinstance(recording, (str, os.PathLike)) else recording
     cfg = config if isinstance(config, dict) else load_config(config)
-    report, _ = diagnose_recording(rec, cfg, base_model)
+    report, _ = diagnose_recording(recording, cfg, base_model)  # a path is streamed
     report.pop("_arrays", None)
     return report

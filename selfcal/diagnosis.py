@@ -447,9 +447,21 @@ def _f(x) -> float | None:
 
 def diagnose_recording(rec, config: dict | None = None, base_model: str = "affine9",
                        keep_arrays: bool = False) -> tuple[dict, dict]:
-    """Diagnose a Recording (samples: still windows first). Returns (report, poses used)."""
-    from selfcal.pipeline import recording_poses
+    """Diagnose a Recording or a file path (samples: still windows first; a file is streamed).
 
+    Returns (report, poses used).
+    """
+    import os
+
+    from selfcal.pipeline import path_poses, recording_poses
+
+    if isinstance(rec, (str, os.PathLike)):
+        poses, normalizer, _, unit = path_poses(rec, config)
+        mean, sd, count, t_s, temp = poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"]
+        report = diagnose_poses(mean, sd, count, t_s, temp, normalizer, config, base_model, keep_arrays)
+        report["recording"] = os.fspath(rec)
+        report["unit"] = unit
+        return report, dict(poses, normalizer=normalizer)
     poses, normalizer, _ = recording_poses(rec, config)
     mean, sd, count, t_s, temp = poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"]
     report = diagnose_poses(mean, sd, count, t_s, temp, normalizer, config, base_model, keep_arrays)

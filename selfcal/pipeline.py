@@ -114,6 +114,50 @@ def recording_poses(rec: Recording, config: dict | None = None) -> tuple[dict, N
     return poses, normalizer, notes
 
 
+def path_poses(path, config: dict | None = None, block_rows: int = 100_000) -> tuple[dict, Normalizer, list[str], str]:
+    """:func:`recording_poses` of a file, streaming a samples table in blocks (bounded memory).
+
+    Returns ``(poses, normalizer, notes, unit)``. Poses tables, device files and raw
+    counts are read whole (as :func:`calibrate_path` does).
+    """
+    from selfcal.detect import DetectorConfig, StaticDetector, StillWindows
+    from selfcal.io import iter_recording, read_recording
+
+    blocks = iter_recording(path, block_rows)
+    first = next(blocks)
+    if first.kind != "samples" or first.unit == "counts" or len(first) < 2:
+        rec = read_recording(path)
+        poses, normalizer, notes = recording_poses(rec, config)
+        return poses, normalizer, notes, rec.unit
+    normalizer = guess_normalizer(first.unit)
+    cfg = _detector_config(config or {}, first.rate_hz(), loose_norm=False)
+    det = StaticDetector(DetectorConfig.from_section(cfg.get("detector")))
+    parts = []
+
+    def feed(rec):
+        pres = rec.pressure_kpa() if rec.pressure is not None and rec.pressure_unit in ("kpa", "ncm2") else None
+        for i in range(0, len(rec.t_s), CHUNK_SAMPLES):
+            sl = slice(i, i + CHUNK_SAMPLES)
+            parts.append(det.feed(rec.t_s[sl], normalizer.to_u(rec.acc[sl]),
+                                  None if rec.temp_c is None else rec.temp_c[sl], None if pres is None else pres[sl]))
+
+    feed(first)
+    for rec in blocks:
+        feed(rec)
+    parts.append(det.flush())
+    w = StillWindows.concat(parts)
+    if len(w) == 0:
+        raise InputError(f"{path}: no still window found")
+    poses = {
+        "mean": w.mean_g * normalizer.scale + np.asarray(normalizer.center),
+        "sd": w.sd_g * normalizer.scale,
+        "count": w.n.astype(float),
+        "t_s": 0.5 * (w.t_start_s + w.t_end_s),
+        "temp_c": w.temp_c if np.any(np.isfinite(w.temp_c)) else None,
+    }
+    return poses, normalizer, [], first.unit
+
+
 def calibrate_recording(
     rec: Recording,
     model: str = "affine9",

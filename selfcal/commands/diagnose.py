@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 from selfcal.config import load_config
-from selfcal.io import read_recording
 
 
 def add_arguments(parser) -> None:
@@ -28,8 +27,8 @@ def run(args) -> int:
             Path(args.report).mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise InputError(f"--report {args.report}: cannot create the folder ({exc.strerror or exc})") from exc
-    rec = read_recording(args.recording)
-    report, _ = diagnose_recording(rec, cfg, args.base_model, keep_arrays=bool(args.report))
+    # a path: samples are streamed through the detector in blocks (only still poses in memory)
+    report, _ = diagnose_recording(args.recording, cfg, args.base_model, keep_arrays=bool(args.report))
     if args.report:
         from selfcal.report import write_report
 
