@@ -7,6 +7,8 @@ measures, each in its own process (peak RSS from ``getrusage`` of that process a
 * ``selfcal calibrate FILE --model affine9+temperature_bias`` (streamed in blocks);
 * a one-thread streaming read of the same file with ``pyarrow.csv.open_csv`` (the
   baseline: what reading alone costs);
+* when it is installed, scikit-digital-health's ``CalibrateAccelerometer`` (MIT; van
+  Hees with temperature) on the same data, read whole with pyarrow as its users do;
 
 and prints wall time, peak RSS, rows/s, the ratio to the streaming read, and the
 calibration's whole-sphere error against the known truth.
@@ -18,6 +20,7 @@ calibration's whole-sphere error against the known truth.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import subprocess
@@ -102,6 +105,36 @@ print(n)
 """
 
 
+SKDH_RUN = """
+import json, sys, numpy as np, pyarrow.csv as c
+from skdh.preprocessing import CalibrateAccelerometer
+hours = float(sys.argv[2])
+tab = c.read_csv(sys.argv[1], read_options=c.ReadOptions(skip_rows=3))  # skdh works on whole arrays
+t = tab.column("t_s").to_numpy() + 1.7e9
+acc = np.column_stack([tab.column(k).to_numpy() for k in ("ax_g", "ay_g", "az_g")])
+temp = tab.column("temp_c").to_numpy()
+del tab
+r = CalibrateAccelerometer(min_hours=min(72.0, 0.5 * hours)).predict(time=t, accel=acc, fs=100.0, temperature=temp)
+m = np.ravel(r["temperature scale"])
+j = int(np.argmax(np.abs(m)))  # the calibration's mean temperature, from one applied sample
+tc = float(temp[0] - (r["accel"][0, j] - (acc[0, j] + r["offset"][j]) * r["scale"][j]) / m[j]) if m[j] else 25.0
+print(json.dumps({"offset": np.ravel(r["offset"]).tolist(), "scale": np.ravel(r["scale"]).tolist(),
+                  "temp_scale": m.tolist(), "temp_mean": tc}))
+"""
+
+
+def skdh_sphere_error_mg(res: dict) -> float:
+    """Whole-sphere error (mg) at 25 degC of skdh's ``a = (y + d) s + (T - Tc) m``, against TRUTH."""
+    from selfcal.fit import sphere_directions
+    from selfcal.models import ErrorModel
+
+    truth = ErrorModel("affine9+temperature_bias")
+    m, b = truth.linear(truth.from_dict(TRUTH))
+    raw = sphere_directions(2000) @ np.linalg.inv(m).T + b
+    a = (raw + np.asarray(res["offset"])) * np.asarray(res["scale"]) + (25.0 - res["temp_mean"]) * np.asarray(res["temp_scale"])
+    return float(np.sqrt(np.mean((np.linalg.norm(a, axis=1) - 1) ** 2)) * 1e3)
+
+
 def sphere_error_mg(cal: dict) -> float:
     """Whole-sphere calibrated-norm RMS error (mg) of a calibration at 25 degC, against TRUTH."""
     from selfcal.fit import sphere_directions
@@ -135,7 +168,11 @@ def main(argv=None) -> int:
             w_read, rss_read, _ = measured([sys.executable, "-c", PYARROW_READ, str(path)])
             w_cal, rss_cal, out = measured([*selfcal, str(path), "--model", "affine9+temperature_bias", "--json"])
             cal = json.loads(out)
-            rows.append({"hours": h, "rows": n, "file_mb": path.stat().st_size / 1e6,
+            skdh = None
+            if importlib.util.find_spec("skdh") is not None and h >= 24:  # skdh needs >= 12 h
+                w_sk, rss_sk, out_sk = measured([sys.executable, "-c", SKDH_RUN, str(path), str(h)])
+                skdh = {"s": w_sk, "rss_mb": rss_sk, "sphere_error_mg": skdh_sphere_error_mg(json.loads(out_sk))}
+            rows.append({"skdh": skdh, "hours": h, "rows": n, "file_mb": path.stat().st_size / 1e6,
                          "read_s": w_read, "read_rss_mb": rss_read, "selfcal_s": w_cal, "selfcal_rss_mb": rss_cal,
                          "rows_per_s": n / w_cal, "ratio_to_read": w_cal / w_read, "status": cal["status"],
                          "sphere_error_mg": sphere_error_mg(cal), "predicted_mg": cal["predicted_sphere_rms_mg"]})
@@ -147,8 +184,18 @@ def main(argv=None) -> int:
         print(f"| {r['hours']:g} h | {r['rows']:,} | {r['file_mb']:.0f} | {r['read_s']:.1f} ({r['read_rss_mb']:.0f}) | "
               f"{r['selfcal_s']:.1f} | {r['selfcal_rss_mb']:.0f} | {r['rows_per_s'] / 1e3:.0f} k | "
               f"{r['ratio_to_read']:.1f} | {r['status']} | {r['sphere_error_mg']:.3f} ({r['predicted_mg']:.3f}) |")
-    print("\nscikit-digital-health was not run here (not installed); the issue's figure from elsewhere: "
-          "about 25 s and 6.4 GB for 7 days.")
+    if any(r["skdh"] for r in rows):
+        print("\nscikit-digital-health (CalibrateAccelerometer with temperature, on arrays read whole with pyarrow), "
+              "same files, each in its own process:\n")
+        print("| length | skdh s | skdh peak RSS MB | skdh sphere error mg | selfcal s | selfcal peak RSS MB | selfcal sphere error mg |")
+        print("|---|---:|---:|---:|---:|---:|---:|")
+        for r in rows:
+            if r["skdh"]:
+                k = r["skdh"]
+                print(f"| {r['hours']:g} h | {k['s']:.1f} | {k['rss_mb']:.0f} | {k['sphere_error_mg']:.3f} | "
+                      f"{r['selfcal_s']:.1f} | {r['selfcal_rss_mb']:.0f} | {r['sphere_error_mg']:.3f} |")
+    else:
+        print("\nscikit-digital-health is not installed (pip install scikit-digital-health): no skdh row.")
     return 0
 
 
