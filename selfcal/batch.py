@@ -28,7 +28,7 @@ SUMMARY_COLUMNS = (
 )
 
 
-def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str) -> dict:
+def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, columns: list[str] | None = None) -> dict:
     """Calibrate one file; never raises: an error becomes the row's ``error``."""
     from selfcal.config import load_config
     from selfcal.errors import SelfcalError
@@ -39,9 +39,9 @@ def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str) 
     row: dict = {k: None for k in SUMMARY_COLUMNS}
     row.update(file=path, model=model)
     try:
-        head = next(iter_recording(path, block_rows=1))  # the preamble and the first row, for the metadata
+        head = next(iter_recording(path, block_rows=1, columns=columns))  # preamble + first row: metadata
         row["device"] = head.meta.get("device") or head.meta.get("sensor") or head.meta.get("format")
-        run = calibrate_path(path, model, load_config(config_path))  # streamed: bounded memory
+        run = calibrate_path(path, model, load_config(config_path), columns=columns)  # streamed: bounded memory
         store = run.calibrator.store
         summ = store.summary()
         if summ["t_span_s"]:
@@ -84,7 +84,7 @@ def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str) 
 
 
 def run_batch(files: list[str], model: str, config_path: str | None, out_dir: str, jobs: int,
-              summary: str | None, progress: bool = True) -> list[dict]:
+              summary: str | None, progress: bool = True, columns: list[str] | None = None) -> list[dict]:
     """Calibrate ``files`` with ``jobs`` processes; write the summary; return the rows in input order."""
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     rows: dict[int, dict] = {}
@@ -95,12 +95,12 @@ def run_batch(files: list[str], model: str, config_path: str | None, out_dir: st
         bar = tqdm(total=len(files), unit="file", desc="calibrate", file=sys.stderr)
     if jobs <= 1:
         for i, f in enumerate(files):
-            rows[i] = calibrate_one(f, model, config_path, out_dir)
+            rows[i] = calibrate_one(f, model, config_path, out_dir, columns)
             if bar:
                 bar.update(1)
     else:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futs = {pool.submit(calibrate_one, f, model, config_path, out_dir): i for i, f in enumerate(files)}
+            futs = {pool.submit(calibrate_one, f, model, config_path, out_dir, columns): i for i, f in enumerate(files)}
             for fut in as_completed(futs):
                 rows[futs[fut]] = fut.result()
                 if bar:

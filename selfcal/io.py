@@ -751,8 +751,37 @@ class _FastBlocks:
         return rec
 
 
-def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=None) -> Iterator[Recording]:
+def plain_columns(columns: str | list[str], unit: str | None = None) -> list[str]:
+    """Column names for a plain CSV (no selfcal header): ``"t_s,ax_g,ay_g,az_g"``.
+
+    Bare names take ``unit`` (``g``, ``mps2`` or ``counts``): ``t`` or ``time`` becomes
+    ``t_s``; ``x``/``ax``, ``y``/``ay``, ``z``/``az`` become ``ax_<unit>``...; ``temp`` or
+    ``temperature`` becomes ``temp_c``. Names that carry a unit are kept.
+    """
+    names = [c.strip() for c in (columns.split(",") if isinstance(columns, str) else columns) if c.strip()]
+    bare = {"t": "t_s", "time": "t_s", "temp": "temp_c", "temperature": "temp_c"}
+    out = []
+    for n in names:
+        low = n.lower()
+        if low in bare:
+            out.append(bare[low])
+        elif low in ("x", "y", "z", "ax", "ay", "az"):
+            if unit is None:
+                raise InputError(f"--columns: {n!r} has no unit; give --unit g, mps2 or counts, or name it "
+                                 f"a{low[-1]}_g (the unit in the name)")
+            out.append(f"a{low[-1]}_{unit}")
+        else:
+            out.append(n)
+    return out
+
+
+def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=None,
+                   columns: list[str] | None = None) -> Iterator[Recording]:
     """Stream a recording in blocks of at most ``block_rows`` rows, in bounded memory.
+
+    ``columns`` (see :func:`plain_columns`) reads a plain CSV with no selfcal header as a
+    samples table with these columns; a first line that is not numbers is taken as the
+    file's own header and skipped.
 
     Yields :class:`Recording` blocks (same kind, unit and columns; ``meta['dropped_rows']``
     per block). Every check and error of :func:`read_recording` applies, with the file's
@@ -797,7 +826,16 @@ def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=
                 "v1' header, units in every column name), or an Axivity .cwa, ActiGraph .gt3x or GENEActiv .bin file")
         fh.seek(0)
         pre: list[str] = []
-        while True:  # the preamble and the header row
+        if columns is not None:  # a plain CSV: our preamble in place of the missing one
+            first = fh.readline()
+            skipped = 0
+            try:
+                [float(x) for x in decode(first, 1).strip().split(",")]
+                fh.seek(0)
+            except ValueError:
+                skipped = 1  # the file's own header row
+            pre = [MAGIC_LINE, "# kind=samples", ",".join(columns)]
+        while columns is None:  # the preamble and the header row
             raw = fh.readline()
             if not raw:
                 break
@@ -816,6 +854,9 @@ def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=
         names = [c.strip() for c in pre[h].split(",")]
         layout = _parse_header(name, header_line, names, kind)
         next_line = h + 2
+        if columns is not None:  # line numbers are the file's own
+            header_line, next_line = max(skipped, 1), 1 + skipped
+            meta = {"columns": ",".join(columns)}
         prev_t = prev_line = None
         any_rows = False
         fast = _FastBlocks(names, layout, kind, meta, name)

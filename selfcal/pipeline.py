@@ -253,6 +253,7 @@ def calibrate_path(
     config: dict | None = None,
     progress: bool = False,
     block_rows: int = 100_000,
+    columns: list[str] | None = None,
 ) -> CalibrationRun:
     """Calibrate a recording file, streaming a samples table in blocks (bounded memory).
 
@@ -279,11 +280,17 @@ def calibrate_path(
         if bar is not None:
             bar.update(max(0, min(n_bytes, size) - bar.n))
 
-    blocks = iter_recording(path, block_rows, progress=read_so_far)
+    blocks = iter_recording(path, block_rows, progress=read_so_far, columns=columns)
     first = next(blocks)
     if first.kind != "samples" or first.unit == "counts" or len(first) == 0:
         if bar:
             bar.close()
+        if columns is not None:  # a plain CSV in counts (the scale needs every still window): gather it
+            parts = [first, *blocks]
+            temp = None if first.temp_c is None else np.concatenate([b.temp_c for b in parts])
+            whole = Recording(kind="samples", unit=first.unit, t_s=np.concatenate([b.t_s for b in parts]),
+                              acc=np.vstack([b.acc for b in parts]), temp_c=temp, path=str(path))
+            return calibrate_recording(whole, model, config, progress=False)
         return calibrate_recording(read_recording(path), model, config, progress=False)
     normalizer = guess_normalizer(first.unit)
     rate = first.rate_hz() if len(first) > 1 else 20.0

@@ -105,3 +105,35 @@ def test_clean_blocks_take_the_fast_parser_and_agree_with_the_exact_one(recordin
         np.testing.assert_array_equal(a.acc, b.acc)
         np.testing.assert_array_equal(a.temp_c, b.temp_c)
     assert len(exact) == len(fast)
+
+
+def test_plain_csv_with_columns(tmp_path, capsys):
+    from selfcal.cli import main
+    from selfcal.io import plain_columns
+
+    rng = np.random.default_rng(72)
+    truth = random_truth(rng)
+    t, raw, _ = sample_stream(rng, A9, truth, spread_directions(rng, 30))
+    body = "\n".join(f"{a:.4f},{b:.6f},{c:.6f},{d:.6f}" for a, (b, c, d) in zip(t, raw))
+    with_header = tmp_path / "h.csv"
+    with_header.write_text("time,x,y,z\n" + body + "\n")
+    bare = tmp_path / "b.csv"
+    bare.write_text(body + "\n")
+    cols = plain_columns("t,x,y,z", "g")
+    assert cols == ["t_s", "ax_g", "ay_g", "az_g"]
+    a = np.concatenate([r.acc for r in iter_recording(with_header, 500, columns=cols)])
+    b = np.concatenate([r.acc for r in iter_recording(bare, 500, columns=cols)])
+    np.testing.assert_array_equal(a, b)
+    assert len(a) == len(t)
+    assert main(["calibrate", str(with_header), "--columns", "t_s,ax_g,ay_g,az_g", "--json"]) == 0
+    capsys.readouterr()
+    # a bad cell is reported at the file's own line (header = line 1, so row k is line k + 1)
+    lines = with_header.read_text().splitlines()
+    lines[100] = lines[100].replace(",", ",x", 1)
+    broken = tmp_path / "broken.csv"
+    broken.write_text("\n".join(lines) + "\n")
+    assert main(["calibrate", str(broken), "--columns", "t,x,y,z", "--unit", "g"]) == 2
+    assert "broken.csv:101:" in capsys.readouterr().err
+    # bare axis names without a unit: one line that says what is missing
+    assert main(["calibrate", str(bare), "--columns", "t,x,y,z"]) == 2
+    assert "--unit" in capsys.readouterr().err

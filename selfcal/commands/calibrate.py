@@ -23,6 +23,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--history", metavar="FILE.jsonl",
                         help="write every published version here, one calibration JSON a line, in time order")
     parser.add_argument("--progress", action="store_true", help="progress bar on stderr")
+    parser.add_argument("--columns", metavar="NAMES",
+                        help="a plain CSV without the selfcal header: its columns in order, e.g. t_s,ax_g,ay_g,az_g "
+                             "(bare t,x,y,z take --unit)")
+    parser.add_argument("--unit", choices=("g", "mps2", "counts"), help="unit of bare x,y,z in --columns")
     parser.add_argument("--jobs", type=int, default=1, metavar="N", help="several files: N processes (default 1)")
     parser.add_argument("--summary", metavar="SUMMARY.csv",
                         help="several files: summary table (CSV, plus a Markdown report and a plot beside it)")
@@ -73,8 +77,11 @@ def run_many(args) -> int:
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise InputError(f"--out-dir {out_dir}: is a file, not a folder")
     load_config(args.config)  # a bad config is a usage error before any work
+    from selfcal.io import plain_columns
+
+    columns = plain_columns(args.columns, args.unit) if args.columns else None
     rows = run_batch(args.recording, args.model, args.config, out_dir, args.jobs, args.summary,
-                     progress=args.progress or sys.stderr.isatty())
+                     progress=args.progress or sys.stderr.isatty(), columns=columns)
     failed = [r for r in rows if r["status"] in ("error", "uncalibrated")]
     for r in rows:
         print(f"{r['file']}: {r['status']}" + (f" ({r['refusal_reason'] or r['error']})" if r in failed else
@@ -98,10 +105,15 @@ def run(args) -> int:
     for target in (args.out, args.history):  # fail before the work, not after it
         if target:
             check_writable(target)
+    from selfcal.io import plain_columns
     from selfcal.pipeline import calibrate_path
 
+    columns = plain_columns(args.columns, args.unit) if args.columns else None
+    if args.unit and not args.columns:
+        raise InputError("--unit applies to --columns (a plain CSV); a selfcal recording names its units")
     # streamed in blocks: only the still poses stay in memory, whatever the file's length
-    result = calibrate_path(args.recording, args.model, cfg, progress=args.progress or sys.stderr.isatty())
+    result = calibrate_path(args.recording, args.model, cfg, progress=args.progress or sys.stderr.isatty(),
+                            columns=columns)
     if args.history:
         write_history(args.history, result)
     out = {
