@@ -12,6 +12,7 @@ summary is written as CSV and, as GGIR users expect, as a Markdown report with o
 from __future__ import annotations
 
 import csv
+import json
 import os
 import sys
 import time
@@ -66,8 +67,6 @@ def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, 
                 theta = np.asarray(run.calibrator.current["theta_u"])
                 after = run.calibrator.model.residuals(theta, poses.mean, poses.temp_c, poses.t_s)
                 row["residual_after_mg"] = round(float(np.sqrt(np.mean(after**2)) * 1e3), 4)
-            import json
-
             target = Path(out_dir) / (Path(path).name + ".cal.json")
             tmp = target.with_name(target.name + ".tmp")
             tmp.write_text(json.dumps(cal, indent=2) + "\n", encoding="utf-8")

@@ -22,8 +22,8 @@ import numpy as np
 
 from selfcal.errors import InputError
 
-#: Suffix -> format name, for the formats actfast decodes.
-DEVICE_SUFFIXES = {".cwa": "Axivity CWA", ".gt3x": "ActiGraph GT3X", ".bin": "GENEActiv BIN"}
+#: Suffix -> format name, for the formats actfast decodes (the reader's own table).
+from selfcal.io import BINARY_DEVICE_SUFFIXES as DEVICE_SUFFIXES  # noqa: E402
 
 
 def is_device_file(path: str | os.PathLike) -> bool:

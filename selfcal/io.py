@@ -234,6 +234,10 @@ class Recording:
         return self.path if self.path is not None else "<recording>"
 
 
+#: What a reader accepts, for the error that meets anything else.
+_ACCEPTED = ("accepted: a selfcal recording CSV ('# selfcal-recording v1' header, units in every column name), "
+             "or an Axivity .cwa, ActiGraph .gt3x or GENEActiv .bin file")
+
 #: Device formats recognised by their suffix (decoded by ``selfcal.devices`` through actfast).
 BINARY_DEVICE_SUFFIXES = {".cwa": "Axivity CWA", ".gt3x": "ActiGraph GT3X", ".bin": "GENEActiv BIN"}
 
@@ -553,9 +557,7 @@ def read_recording(path: str | os.PathLike) -> Recording:
         text = p.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
         raise InputError(
-            f"{name}: not UTF-8 text ({exc.reason} at byte {exc.start}); accepted: a selfcal recording CSV "
-            "('# selfcal-recording v1' header, units in every column name), or an Axivity .cwa, "
-            "ActiGraph .gt3x or GENEActiv .bin file") from exc
+            f"{name}: not UTF-8 text ({exc.reason} at byte {exc.start}); {_ACCEPTED}") from exc
     except FileNotFoundError as exc:
         raise InputError(f"{name}: no such file") from exc
     except OSError as exc:
@@ -656,16 +658,23 @@ def _parse_block(name: str, names: list[str], layout: "_Layout", kind: str, meta
                          f"got {float(n_float[k])!r}")
         n_windows = n_float.astype(np.int64)
 
+    extra = {names[j]: (text_cols[j] if j in text_cols else values[:, j].copy()) for j in layout.extra}
+    rec = _block_recording(name, kind, layout, meta, values, n_windows, extra, n_dropped)
+    rec._last_line = int(line_nos[-1])  # for the next block's t_s check (not a field, not in meta)
+    return rec
+
+
+def _block_recording(name: str, kind: str, layout: "_Layout", meta: dict[str, str], values: np.ndarray,
+                     n_windows: np.ndarray | None, extra: dict, n_dropped: int) -> Recording:
+    """The Recording of a parsed block: the columns of ``values`` (rows, columns) where ``layout`` puts them."""
+
     def cols(idx):
         return None if idx is None else np.ascontiguousarray(values[:, idx])
 
-    extra = {names[j]: (text_cols[j] if j in text_cols else values[:, j].copy()) for j in layout.extra}
-    meta = dict(meta)
-    meta["dropped_rows"] = str(n_dropped)
-    rec = Recording(
+    return Recording(
         kind=kind,
         unit=layout.unit,
-        t_s=t_s.copy(),
+        t_s=np.ascontiguousarray(values[:, layout.t]),
         acc=cols(layout.acc),
         temp_c=cols(layout.temp),
         pressure=cols(layout.pressure) if layout.pressure else None,
@@ -675,11 +684,9 @@ def _parse_block(name: str, names: list[str], layout: "_Layout", kind: str, meta
         duration_s=cols(layout.duration),
         n=n_windows,
         extra=extra,
-        meta=meta,
+        meta=dict(meta, dropped_rows=str(n_dropped)),
         path=name,
     )
-    rec._last_line = int(line_nos[-1])  # for the next block's t_s check (not a field, not in meta)
-    return rec
 
 
 class _FastBlocks:
@@ -736,17 +743,8 @@ class _FastBlocks:
                 return None
             n_windows = nf.astype(np.int64)
 
-        def cols(idx):
-            return None if idx is None else np.ascontiguousarray(values[:, idx])
-
-        meta = dict(self.meta)
-        meta["dropped_rows"] = "0"
-        rec = Recording(
-            kind=self.kind, unit=lay.unit, t_s=t_s.copy(), acc=cols(lay.acc), temp_c=cols(lay.temp),
-            pressure=cols(lay.pressure) if lay.pressure else None, pressure_unit=lay.pressure_unit,
-            gyro_dps=cols(lay.gyro), sd=cols(lay.sd), duration_s=cols(lay.duration), n=n_windows,
-            extra={self.names[j]: values[:, j].copy() for j in lay.extra}, meta=meta, path=self.name,
-        )
+        rec = _block_recording(self.name, self.kind, lay, self.meta, values, n_windows,
+                               {self.names[j]: values[:, j].copy() for j in lay.extra}, 0)
         rec._last_line = first_line + len(chunk) - 1
         return rec
 
@@ -809,10 +807,7 @@ def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=
             try:
                 return raw.decode("utf-8")
             except UnicodeDecodeError as exc:
-                raise InputError(
-                    f"{name}:{at_line}: not UTF-8 text ({exc.reason}); accepted: a selfcal recording CSV "
-                    "('# selfcal-recording v1' header, units in every column name), or an Axivity .cwa, "
-                    "ActiGraph .gt3x or GENEActiv .bin file") from exc
+                raise InputError(f"{name}:{at_line}: not UTF-8 text ({exc.reason}); {_ACCEPTED}") from exc
 
         head = fh.read(65536)  # a binary file is refused up front, naming what is accepted
         try:
@@ -821,9 +816,7 @@ def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=
         except UnicodeDecodeError as exc:
             binary = exc.start < len(head) - 4  # not just a character cut at the end of the peek
         if binary:
-            raise InputError(
-                f"{name}: not UTF-8 text (binary data); accepted: a selfcal recording CSV ('# selfcal-recording "
-                "v1' header, units in every column name), or an Axivity .cwa, ActiGraph .gt3x or GENEActiv .bin file")
+            raise InputError(f"{name}: not UTF-8 text (binary data); {_ACCEPTED}")
         fh.seek(0)
         pre: list[str] = []
         if columns is not None:  # a plain CSV: our preamble in place of the missing one

@@ -9,6 +9,7 @@ windows gives the counts-per-g scale and centre the calibrator then works in.
 from __future__ import annotations
 
 import copy
+import itertools
 import sys
 from dataclasses import dataclass
 
@@ -62,11 +63,37 @@ def _detector_config(config: dict, rate_hz: float, loose_norm: bool) -> dict:
     return cfg
 
 
+def _pressure_kpa(rec: Recording) -> np.ndarray | None:
+    """Pressure in kPa when the recording has cells in a known unit, else None."""
+    return rec.pressure_kpa() if rec.pressure is not None and rec.pressure_unit in ("kpa", "ncm2") else None
+
+
+def _chunks(rec: Recording, normalizer: Normalizer):
+    """``(t_s, acc_u, temp_c, pressure_kpa)`` pieces of CHUNK_SAMPLES, normalised piece by piece
+    (no whole-file float64 copy of the acceleration)."""
+    pres = _pressure_kpa(rec)
+    for i in range(0, len(rec.t_s), CHUNK_SAMPLES):
+        sl = slice(i, i + CHUNK_SAMPLES)
+        yield (rec.t_s[sl], normalizer.to_u(rec.acc[sl]), None if rec.temp_c is None else rec.temp_c[sl],
+               None if pres is None else pres[sl])
+
+
+def _windows_to_poses(w, normalizer: Normalizer) -> dict:
+    """Still windows (normalised units) as a poses dict in the recording's unit."""
+    return {
+        "mean": w.mean_g * normalizer.scale + np.asarray(normalizer.center),
+        "sd": w.sd_g * normalizer.scale,
+        "count": w.n.astype(float),
+        "t_s": 0.5 * (w.t_start_s + w.t_end_s),
+        "temp_c": w.temp_c if np.any(np.isfinite(w.temp_c)) else None,
+    }
+
+
 def _windows_of(rec_u_acc, rec: Recording, cfg: dict):
     from selfcal.detect import StaticDetector, DetectorConfig, StillWindows
 
     det = StaticDetector(DetectorConfig.from_section(cfg.get("detector")))
-    pres = rec.pressure_kpa() if rec.pressure is not None and rec.pressure_unit in ("kpa", "ncm2") else None
+    pres = _pressure_kpa(rec)
     parts = []
     for i in range(0, len(rec.t_s), CHUNK_SAMPLES):
         sl = slice(i, i + CHUNK_SAMPLES)
@@ -95,13 +122,7 @@ def recording_poses(rec: Recording, config: dict | None = None) -> tuple[dict, N
         w = _windows_of(rough.to_u(rec.acc), rec, _detector_config(config or {}, rec.rate_hz(), rec.unit == "counts"))
         if len(w) == 0:
             raise InputError(f"{rec.path}: no still window found")
-        poses = {
-            "mean": w.mean_g * rough.scale + np.asarray(rough.center),
-            "sd": w.sd_g * rough.scale,
-            "count": w.n.astype(float),
-            "t_s": 0.5 * (w.t_start_s + w.t_end_s),
-            "temp_c": w.temp_c if np.any(np.isfinite(w.temp_c)) else None,
-        }
+        poses = _windows_to_poses(w, rough)
     else:
         if rec.n is not None:
             count = rec.n.astype(float)
@@ -132,30 +153,12 @@ def path_poses(path, config: dict | None = None, block_rows: int = 100_000) -> t
     normalizer = guess_normalizer(first.unit)
     cfg = _detector_config(config or {}, first.rate_hz(), loose_norm=False)
     det = StaticDetector(DetectorConfig.from_section(cfg.get("detector")))
-    parts = []
-
-    def feed(rec):
-        pres = rec.pressure_kpa() if rec.pressure is not None and rec.pressure_unit in ("kpa", "ncm2") else None
-        for i in range(0, len(rec.t_s), CHUNK_SAMPLES):
-            sl = slice(i, i + CHUNK_SAMPLES)
-            parts.append(det.feed(rec.t_s[sl], normalizer.to_u(rec.acc[sl]),
-                                  None if rec.temp_c is None else rec.temp_c[sl], None if pres is None else pres[sl]))
-
-    feed(first)
-    for rec in blocks:
-        feed(rec)
+    parts = [det.feed(*piece) for rec in itertools.chain([first], blocks) for piece in _chunks(rec, normalizer)]
     parts.append(det.flush())
     w = StillWindows.concat(parts)
     if len(w) == 0:
         raise InputError(f"{path}: no still window found")
-    poses = {
-        "mean": w.mean_g * normalizer.scale + np.asarray(normalizer.center),
-        "sd": w.sd_g * normalizer.scale,
-        "count": w.n.astype(float),
-        "t_s": 0.5 * (w.t_start_s + w.t_end_s),
-        "temp_c": w.temp_c if np.any(np.isfinite(w.temp_c)) else None,
-    }
-    return poses, normalizer, [], first.unit
+    return _windows_to_poses(w, normalizer), normalizer, [], first.unit
 
 
 def calibrate_recording(
@@ -199,7 +202,6 @@ def calibrate_recording(
             normalizer = guess_normalizer(rec.unit)
         cfg = _detector_config(config, rate, loose_norm=False)
         cal = OnlineCalibrator(cfg, model)
-        pres = rec.pressure_kpa() if rec.pressure is not None and rec.pressure_unit in ("kpa", "ncm2") else None
         events: list[dict] = []
         n = len(rec.t_s)
         bar = None
@@ -208,16 +210,12 @@ def calibrate_recording(
 
             bar = tqdm(total=n, unit="sample", file=sys.stderr, desc="calibrate")
         n_windows = 0
-        for i in range(0, n, CHUNK_SAMPLES):
-            sl = slice(i, i + CHUNK_SAMPLES)
+        for piece in _chunks(rec, normalizer):
             before = cal.buffer.n_seen
-            events += cal.feed_samples(  # normalised chunk by chunk: no whole-file float64 copy
-                rec.t_s[sl], normalizer.to_u(rec.acc[sl]), None if rec.temp_c is None else rec.temp_c[sl],
-                None if pres is None else pres[sl]
-            )
+            events += cal.feed_samples(*piece)
             n_windows += cal.buffer.n_seen - before
             if bar:
-                bar.update(len(rec.t_s[sl]))
+                bar.update(len(piece[0]))
         before = cal.buffer.n_seen
         events += cal.flush()
         n_windows += cal.buffer.n_seen - before
@@ -296,23 +294,9 @@ def calibrate_path(
     rate = first.rate_hz() if len(first) > 1 else 20.0
     cal = OnlineCalibrator(_detector_config(config, rate, loose_norm=False), model)
     events: list[dict] = []
-    n_rows = 0
-
-    def feed(rec):
-        nonlocal n_rows
-        pres = rec.pressure_kpa() if rec.pressure is not None and rec.pressure_unit in ("kpa", "ncm2") else None
-        for i in range(0, len(rec.t_s), CHUNK_SAMPLES):
-            sl = slice(i, i + CHUNK_SAMPLES)
-            events.extend(cal.feed_samples(rec.t_s[sl], normalizer.to_u(rec.acc[sl]),
-                                           None if rec.temp_c is None else rec.temp_c[sl],
-                                           None if pres is None else pres[sl]))
-        n_rows += len(rec)
-
-    feed(first)
-    for rec in blocks:
-        if rec.unit != first.unit:
-            raise InputError(f"{path}: unit changed between blocks")
-        feed(rec)
+    for rec in itertools.chain([first], blocks):
+        for piece in _chunks(rec, normalizer):
+            events.extend(cal.feed_samples(*piece))
     events.extend(cal.flush())
     if bar:
         bar.update(size - bar.n)

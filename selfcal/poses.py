@@ -262,7 +262,7 @@ class PoseStore:
         tmax = np.full(len(ukeys), -np.inf)
         np.minimum.at(tmin, inv, t_s)
         np.maximum.at(tmax, inv, t_s)
-        target = np.array([self._index.get(int(x), -1) for x in ukeys], dtype=np.int64)
+        target = self._rows_of(ukeys)
         exist = target >= 0
         if exist.any():
             t = target[exist]
@@ -331,6 +331,15 @@ class PoseStore:
         row[:, _NTEMP] = has_t
         return row
 
+    def _rows_of(self, keys: np.ndarray, first_of_group: np.ndarray | None = None) -> np.ndarray:
+        """Stored row of each key (-1 if new). With sorted ``keys`` and their group starts,
+        the dict is asked once per distinct key."""
+        if first_of_group is None:
+            return np.array([self._index.get(int(x), -1) for x in keys], dtype=np.int64)
+        heads = np.flatnonzero(first_of_group)
+        rows = np.array([self._index.get(int(keys[i]), -1) for i in heads], dtype=np.int64)
+        return np.repeat(rows, np.diff(np.r_[heads, len(keys)]))
+
     def _gate_one(self, running: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Gate decisions (k,) of windows with norms ``d`` against their cells' running statistics."""
         enough = running[:, _NW] >= self.config.gate_min_windows
@@ -356,7 +365,7 @@ class PoseStore:
         first = np.maximum.accumulate(np.where(start, np.arange(k), 0))
         csum = np.cumsum(rs, axis=0)
         before = csum - rs - (csum[first] - rs[first])  # earlier windows of the same key, this batch
-        idx = np.array([self._index.get(int(x), -1) for x in ks], dtype=np.int64)
+        idx = self._rows_of(ks, first_of_group=start)
         pre = np.zeros((k, N_STATS))
         if (idx >= 0).any():
             pre[idx >= 0] = self.stats[idx[idx >= 0]]
