@@ -30,12 +30,19 @@ The run is then cut into consecutive pieces of ``round(max_window_s * rate_hz)``
 samples counted from its first sample (the last piece is the remainder), and each piece
 of ``t_end_s - t_start_s >= min_duration_s`` is a still window.
 
-Chunk invariance: every statistic is computed from its own samples (a contiguous copy
-of each window, reduced along its contiguous axis; counts by integer cumsums), never
-from running float sums, so the numbers do not depend on where chunks were cut. The
-carried state is the last ``W - 1`` samples plus the open piece (bounded by
-``max_window_s``), and it is explicit: :func:`step` is the pure kernel
-``step(state, chunk) -> (state, windows)``; :class:`StaticDetector` is a thin shell.
+Speed and chunk invariance. The statistics of a window are *defined* as those of its
+own samples, copied to contiguous memory and reduced along it (two-pass mean and sd),
+so they do not depend on where chunks were cut. Computing that for every sliding
+window costs O(W) a sample; instead the sd tests use rolling sums (O(1) a sample,
+prefix sums re-anchored every few thousand windows) with a rigorous bound on their
+rounding error, and only the rare windows within that bound of a threshold are
+reduced in full. The flags are therefore those of the definition, bit for bit
+(``tests/test_detect_reference.py`` holds the fast detector to the old one,
+``bench/detector_speed.py`` measures both). The output windows' statistics come from
+the definition directly, pieces of one length reduced together. The carried state is
+the last ``W - 1`` samples plus the open piece (bounded by ``max_window_s``), and it is
+explicit: :func:`step` is the pure kernel ``step(state, chunk) -> (state, windows)``;
+:class:`StaticDetector` is a thin shell.
 """
 
 from __future__ import annotations
@@ -45,7 +52,6 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -74,6 +80,15 @@ ToCal = Callable[[np.ndarray], np.ndarray]
 
 # Largest number of float64 values materialised at once when copying sliding windows.
 _BLOCK_VALUES = 1 << 20
+
+# Windows per block of re-anchored prefix sums (bounds their rounding error).
+_ROLL_BLOCK = 1 << 13
+
+# Longer chunks are stepped through in pieces of this many samples (cache-sized).
+_STEP_SAMPLES = 1 << 16
+
+# Below this many new windows a call reduces each window directly (less overhead).
+_SMALL_WINDOWS = 64
 
 
 # ----------------------------------------------------------------------------- config
@@ -360,95 +375,141 @@ def state_from_dict(d: dict[str, Any], config: DetectorConfig) -> DetectorState:
 
 
 # ---------------------------------------------------------------------------- kernels
-def _window_mean_sd(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-window mean and sample sd of every ``w``-sample sliding window.
+# Inside the kernels the samples are held by channel: ``x`` of shape ``(c, n)``, one
+# contiguous row per channel (ax, ay, az in g, then the pressure channels in kPa), so
+# that every sum runs along contiguous memory.
+
+
+def _exact_window_stats(x: np.ndarray, w: int, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two-pass mean and sample sd of the ``w``-sample windows that start at ``idx``.
 
     Parameters
     ----------
-    x : ndarray, shape (n, c)
-        Samples (any unit), all finite.
+    x : ndarray, shape (c, n)
+        Samples by channel (any unit), all finite.
     w : int
         Window length, samples (>= 2, <= n).
+    idx : ndarray of int, shape (k,)
+        First sample of each window (``0 <= idx <= n - w``).
 
     Returns
     -------
-    mean, sd : ndarray, shape (n - w + 1, c)
+    mean, sd : ndarray, shape (k, c)
         Same unit as ``x``; sd with ddof=1.
 
     Notes
     -----
-    Each window is copied to contiguous memory and reduced along that axis, so its
-    result depends on its own ``w`` values only (not on ``n`` or on where the stream
-    was cut); a block loop bounds the memory.
+    This is the definition of a window's statistics. Each window of each channel is
+    copied to contiguous memory and reduced along it, so the result depends on its own
+    ``w`` values only (not on ``n``, ``k`` or where the stream was cut).
     """
-    n, c = x.shape
-    m = n - w + 1
-    mean = np.empty((m, c))
-    sd = np.empty((m, c))
-    if c == 0 or m <= 0:
+    c = x.shape[0]
+    k = idx.shape[0]
+    mean = np.empty((k, c))
+    sd = np.empty((k, c))
+    if c == 0 or k == 0:
         return mean, sd
     block = max(1, _BLOCK_VALUES // (w * c))
-    for lo in range(0, m, block):
-        hi = min(m, lo + block)
-        win = np.ascontiguousarray(sliding_window_view(x[lo : hi + w - 1], w, axis=0))
+    offsets = np.arange(w)
+    for lo in range(0, k, block):
+        hi = min(k, lo + block)
+        win = np.take(x, idx[lo:hi, None] + offsets, axis=1)  # (c, b, w), C-contiguous copy
         mu = win.mean(axis=-1)
         dev = win - mu[..., None]
-        mean[lo:hi] = mu
-        sd[lo:hi] = np.sqrt((dev * dev).sum(axis=-1) / (w - 1))
+        mean[lo:hi] = mu.T
+        sd[lo:hi] = np.sqrt((dev * dev).sum(axis=-1) / (w - 1)).T
     return mean, sd
 
 
-def _piece_stats(
-    t: np.ndarray, acc: np.ndarray, temp: np.ndarray, pres: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """Statistics of one still window.
+def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray) -> np.ndarray:
+    """Whether every channel's sample sd lies in ``[lo_sd, hi_sd]``, for every
+    ``w``-sample sliding window, decided exactly as :func:`_exact_window_stats` decides.
 
     Parameters
     ----------
-    t : ndarray, shape (n,), s
-    acc : ndarray, shape (n, 3), g
-    temp : ndarray, shape (n,), °C (NaN where absent)
-    pres : ndarray, shape (n, k), kPa
+    x : ndarray, shape (c, n)
+        Samples by channel (any unit), all finite.
+    w : int
+        Window length, samples (>= 2, <= n).
+    lo_sd, hi_sd : ndarray, shape (c,)
+        Bounds per channel, same unit as ``x`` (``lo_sd <= 0``: no lower bound).
 
     Returns
     -------
-    mean : ndarray, shape (3,), g
-    sd : ndarray, shape (3,), g (ddof=1)
-    temp_mean : float, °C
-        Mean of the finite readings (NaN if none).
-    pressure_sd : float, kPa
-        Largest per-channel sd (NaN if ``k = 0``).
+    ndarray of bool, shape (n - w + 1,)
+
+    Notes
+    -----
+    O(1) per sample. Window sums come from prefix sums that restart every
+    ``_ROLL_BLOCK`` windows and are taken about the block's first sample (gravity
+    does not cancel). Each block carries a rigorous bound on the rounding error of
+    every window's sum of squares (a sequential sum of ``k`` terms is off by at most
+    ``k u sum|terms|``, ``u`` the unit roundoff), and the two-pass reference's own
+    rounding is a relative margin. A window within that margin of a bound, or with a
+    non-finite sum, is recomputed by :func:`_exact_window_stats`. So the flags are the
+    two-pass definition's, bit for bit, whatever the chunking: the rolling sums only
+    decide the windows that are clearly in or clearly out.
     """
-    a = np.ascontiguousarray(acc.T)  # (3, n): reduce along the contiguous axis
-    n = a.shape[1]
-    mu = a.mean(axis=1)
-    dev = a - mu[:, None]
-    sd = np.sqrt((dev * dev).sum(axis=1) / (n - 1))
-    ok = np.isfinite(temp)
-    temp_mean = float(np.ascontiguousarray(temp[ok]).mean()) if ok.any() else math.nan
-    if pres.shape[1]:
-        p = np.ascontiguousarray(pres.T)
-        pdev = p - p.mean(axis=1)[:, None]
-        psd = float(np.sqrt((pdev * pdev).sum(axis=1) / (n - 1)).max())
-    else:
-        psd = math.nan
-    return mu, sd, temp_mean, psd
+    c, n = x.shape
+    m = n - w + 1
+    ok = np.ones(max(m, 0), dtype=bool)
+    if m <= 0 or c == 0:
+        return ok
+    u = np.finfo(float).eps / 2
+    r = (4 * math.log2(w) + 16) * u  # relative: two-pass reference, sqrt, thresholds
+    hi_ss = hi_sd * hi_sd * (w - 1)
+    lo_ss = np.where(lo_sd > 0, lo_sd * lo_sd * (w - 1), -np.inf)
+    inv_w = 1.0 / w
+    for lo in range(0, m, _ROLL_BLOCK):
+        hi = min(m, lo + _ROLL_BLOCK)
+        seg = x[:, lo : hi + w - 1]
+        length = seg.shape[1]
+        q = np.empty((2 * c, length + 1))
+        q[:, 0] = 0.0
+        y = np.subtract(seg, seg[:, :1], out=q[:c, 1:])
+        np.multiply(y, y, out=q[c:, 1:])
+        np.cumsum(q, axis=1, out=q)  # prefix sums of y (rows :c) and y^2 (rows c:)
+        d = q[:, w:] - q[:, :-w]
+        s1 = d[:c]
+        ss = d[c:]
+        s1 *= s1
+        s1 *= inv_w
+        ss -= s1  # sum of squared deviations of each window, (c, hi - lo)
+        # Rounding bound for this block, per channel: every prefix of y^2 is <= p2.
+        p2 = q[c:, -1]
+        with np.errstate(invalid="ignore", over="ignore"):
+            s1_max = np.sqrt(w * p2)  # |window sum of y| (Cauchy-Schwarz)
+            e1 = 2 * (length + 1) * u * np.sqrt(length * p2) + u * s1_max
+            e2 = 2 * (length + 2) * u * p2 + u * p2
+            e_ss = (e2 + (2 * s1_max * e1 + e1 * e1) * inv_w + 3 * u * p2
+                    + 3 * u * p2 + 4 * u * np.abs(seg[:, 0]) * np.sqrt(p2) * w * u)
+            margin = 2 * e_ss + 1e-300
+            in_hi = (hi_ss / (1 + r) - margin)[:, None]
+            out_hi = (hi_ss / (1 - r) + margin)[:, None]
+            in_lo = np.where(np.isfinite(lo_ss), lo_ss / (1 - r) + margin, -np.inf)[:, None]
+            out_lo = np.where(np.isfinite(lo_ss), lo_ss / (1 + r) - margin, -np.inf)[:, None]
+            sure_in = ((ss < in_hi) & (ss > in_lo)).all(axis=0)
+            ok[lo:hi] = sure_in
+            if sure_in.all():
+                continue
+            maybe = ((ss <= out_hi) & (ss >= out_lo)).all(axis=0) & ~sure_in
+            if not np.isfinite(margin).all():
+                maybe = ~sure_in  # overflow: decide every window the slow way
+        unsure = np.flatnonzero(maybe)
+        if unsure.size:
+            _, sd = _exact_window_stats(x, w, unsure + lo)
+            ok[lo + unsure] = ((sd <= hi_sd) & (sd >= np.where(lo_sd > 0, lo_sd, -np.inf))).all(axis=1)
+    return ok
 
 
-def _window_flags(
-    t: np.ndarray,
-    acc: np.ndarray,
-    pres: np.ndarray,
-    cfg: DetectorConfig,
-    to_cal: ToCal | None,
-) -> np.ndarray:
+def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToCal | None) -> np.ndarray:
     """Pass/fail of every ``W``-sample sliding window of a stretch of samples.
 
     Parameters
     ----------
     t : ndarray, shape (n,), s
-    acc : ndarray, shape (n, 3), g
-    pres : ndarray, shape (n, k), kPa
+    x : ndarray, shape (3 + k, n)
+        By channel: ax, ay, az (g), then ``k`` pressure channels (kPa).
     cfg : DetectorConfig
     to_cal : callable or None
         ``(m, 3) g -> (m, 3) g``; selects the calibrated norm test.
@@ -463,88 +524,171 @@ def _window_flags(
     m = n - w + 1
     if m <= 0:
         return np.zeros(0, dtype=bool)
-    finite = np.isfinite(acc).all(axis=1) & np.isfinite(pres).all(axis=1)
-    bad = ~finite
-    with np.errstate(invalid="ignore"):
+    k = x.shape[0] - 3
+    with np.errstate(over="ignore", invalid="ignore"):  # inf/NaN samples fail below
+        finite = np.isfinite(x).all(axis=0)
+        bad = ~finite
         if cfg.clip_abs_g is not None:
-            bad |= (np.abs(acc) >= cfg.clip_abs_g).any(axis=1)
+            bad |= (np.abs(x[:3]) >= cfg.clip_abs_g).any(axis=0)
         if to_cal is None:
-            bad |= np.abs(np.sqrt((acc * acc).sum(axis=1)) - 1.0) >= cfg.norm_tol_raw_g
+            bad |= np.abs(np.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]) - 1.0) >= cfg.norm_tol_raw_g
         dt = np.diff(t)
         gap = np.zeros(n, dtype=bool)
         gap[1:] = ~(dt > 0) | (dt > cfg.max_gap_s)  # NaN steps break too
-    # Integer counts per window: exact whatever the chunking.
-    cbad = np.concatenate(([0], np.cumsum(bad, dtype=np.int64)))
-    cgap = np.concatenate(([0], np.cumsum(gap, dtype=np.int64)))
-    ok = (cbad[w:] - cbad[:m] == 0) & (cgap[w:] - cgap[1 : m + 1] == 0)
+        # Integer counts per window: exact whatever the chunking.
+        cbad = np.concatenate(([0], np.cumsum(bad, dtype=np.int64)))
+        cgap = np.concatenate(([0], np.cumsum(gap, dtype=np.int64)))
+        ok = (cbad[w:] - cbad[:m] == 0) & (cgap[w:] - cgap[1 : m + 1] == 0)
 
-    a0 = np.where(finite[:, None], acc, 0.0)
-    mean, sd = _window_mean_sd(a0, w)
-    ok &= (sd <= cfg.sd_max_g).all(axis=1) & (sd >= cfg.sd_min_g).all(axis=1)
-    if pres.shape[1]:
-        p0 = np.where(finite[:, None], pres, 0.0)
-        _, psd = _window_mean_sd(p0, w)
-        ok &= psd.max(axis=1) <= cfg.pressure_sd_max_kpa
-    if to_cal is not None:
-        idx = np.flatnonzero(ok)
-        if idx.size:
-            cal = np.asarray(to_cal(mean[idx]), dtype=float)
-            if cal.shape != (idx.size, 3):
-                raise InputError(
-                    f"to_cal returned shape {cal.shape} for input shape ({idx.size}, 3); "
-                    "it must map (m, 3) g to (m, 3) g"
-                )
-            with np.errstate(invalid="ignore"):
+        x0 = x if finite.all() else np.where(finite, x, 0.0)
+        lo_sd = np.concatenate((np.full(3, cfg.sd_min_g), np.zeros(k)))
+        hi_sd = np.concatenate((np.full(3, cfg.sd_max_g), np.full(k, cfg.pressure_sd_max_kpa)))
+        if m <= _SMALL_WINDOWS:  # few new windows (small chunks): reduce each one directly
+            cand = np.flatnonzero(ok)
+            _, sd = _exact_window_stats(x0, w, cand)
+            ok[cand] = ((sd <= hi_sd) & (sd >= np.where(lo_sd > 0, lo_sd, -np.inf))).all(axis=1)
+        elif ok.any():
+            ok &= _sd_within(x0, w, lo_sd, hi_sd)
+        if to_cal is not None:
+            idx = np.flatnonzero(ok)
+            if idx.size:
+                mean, _ = _exact_window_stats(x0[:3], w, idx)
+                cal = np.asarray(to_cal(mean), dtype=float)
+                if cal.shape != (idx.size, 3):
+                    raise InputError(
+                        f"to_cal returned shape {cal.shape} for input shape ({idx.size}, 3); "
+                        "it must map (m, 3) g to (m, 3) g"
+                    )
                 dev = np.abs(np.sqrt((cal * cal).sum(axis=1)) - 1.0)
-            ok[idx[~(dev <= cfg.norm_tol_cal_g)]] = False
-    return ok
+                ok[idx[~(dev <= cfg.norm_tol_cal_g)]] = False
+        return ok
 
 
-def _emit_pieces(
-    buf: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-    g0: int,
-    piece_start: int,
-    limit_end: int,
-    final: bool,
-    cfg: DetectorConfig,
-    out: list[tuple],
-) -> int:
-    """Cut ``[piece_start, limit_end]`` into pieces; return the next piece start.
+def _piece_ranges(
+    piece_start: int, limit_end: int, final: bool, cfg: DetectorConfig
+) -> tuple[np.ndarray, int]:
+    """Cut ``[piece_start, limit_end]`` (global sample indices) into pieces.
 
-    Full pieces (``max_window_samples``) are emitted while they end at or before
-    ``limit_end``; with ``final`` the remainder is emitted too. A piece is kept when it
-    lasts at least ``min_duration_s``.
+    Full pieces (``max_window_samples``) are cut while they end at or before
+    ``limit_end``; with ``final`` the remainder is a piece too.
+
+    Returns
+    -------
+    starts : ndarray of int64, shape (k,)
+        First sample of each piece (the pieces are consecutive: each ends where the
+        next starts, the last at ``next_start - 1``).
+    next_start : int
+        First sample of the next piece.
     """
-    t, acc, temp, pres = buf
     size = cfg.max_window_samples
-    ps = piece_start
-    while True:
-        if ps + size - 1 <= limit_end:
-            pe = ps + size - 1
-        elif final and ps <= limit_end:
-            pe = limit_end
-        else:
-            break
-        lo, hi = ps - g0, pe - g0 + 1
-        if t[hi - 1] - t[lo] >= cfg.min_duration_s and hi - lo >= 2:
-            mu, sd, tc, psd = _piece_stats(t[lo:hi], acc[lo:hi], temp[lo:hi], pres[lo:hi])
-            out.append((mu, sd, hi - lo, t[lo], t[hi - 1], tc, psd))
-        ps = pe + 1
-    return ps
+    if limit_end < piece_start:
+        return np.zeros(0, dtype=np.int64), piece_start
+    if final:
+        return np.arange(piece_start, limit_end + 1, size, dtype=np.int64), limit_end + 1
+    n_full = (limit_end - piece_start + 1) // size
+    return piece_start + size * np.arange(n_full, dtype=np.int64), piece_start + size * n_full
 
 
-def _table(rows: list[tuple]) -> StillWindows:
-    if not rows:
+def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                  cfg: DetectorConfig) -> StillWindows:
+    """Still windows of the pieces ``[lo, hi)`` that last ``min_duration_s``.
+
+    Parameters
+    ----------
+    t : ndarray, shape (b,), s
+    x : ndarray, shape (4 + k, b)
+        Buffered samples by channel: ax, ay, az (g), ``k`` pressure channels (kPa),
+        temperature (°C, NaN where absent).
+    lo, hi : ndarray of int, shape (q,)
+        Local index range of each piece (``hi`` excluded), in time order.
+    cfg : DetectorConfig
+
+    Returns
+    -------
+    StillWindows
+
+    Notes
+    -----
+    A window's statistics are those of its own samples: per channel, the samples are
+    copied to contiguous memory and reduced along it (pieces of one length together).
+    """
+    keep = hi - lo >= 2
+    keep[keep] = t[hi[keep] - 1] - t[lo[keep]] >= cfg.min_duration_s
+    lo, hi = lo[keep], hi[keep]
+    q = lo.size
+    if q == 0:
         return StillWindows()
+    kp = x.shape[0] - 4
+    mean = np.empty((q, 3))
+    sd = np.empty((q, 3))
+    temp_mean = np.full(q, np.nan)
+    psd = np.full(q, np.nan)
+    lengths = hi - lo
+    for length in np.unique(lengths).tolist():
+        rows = np.flatnonzero(lengths == length)
+        block = max(1, _BLOCK_VALUES // (length * x.shape[0]))
+        for b0 in range(0, rows.size, block):
+            r = rows[b0 : b0 + block]
+            ix = lo[r, None] + np.arange(length)  # (b, length)
+            a = np.take(x[:3], ix, axis=1)  # (3, b, length), C-contiguous copy
+            mu = a.mean(axis=-1)
+            dev = a - mu[..., None]
+            mean[r] = mu.T
+            sd[r] = np.sqrt((dev * dev).sum(axis=-1) / (length - 1)).T
+            tt = x[-1][ix]  # (b, length)
+            fin = np.isfinite(tt)
+            every = fin.all(axis=1)
+            if every.any():
+                temp_mean[r[every]] = tt[every].mean(axis=1)
+            for j in np.flatnonzero(~every & fin.any(axis=1)).tolist():  # gaps in temp_c
+                temp_mean[r[j]] = float(np.ascontiguousarray(tt[j][fin[j]]).mean())
+            if kp:
+                p = np.take(x[3 : 3 + kp], ix, axis=1)  # (kp, b, length), C-contiguous
+                pdev = p - p.mean(axis=-1)[..., None]
+                psd[r] = np.sqrt((pdev * pdev).sum(axis=-1) / (length - 1)).max(axis=0)
     return StillWindows(
-        mean_g=np.array([r[0] for r in rows], dtype=float).reshape(-1, 3),
-        sd_g=np.array([r[1] for r in rows], dtype=float).reshape(-1, 3),
-        n=np.array([r[2] for r in rows], dtype=np.int64),
-        t_start_s=np.array([r[3] for r in rows], dtype=float),
-        t_end_s=np.array([r[4] for r in rows], dtype=float),
-        temp_c=np.array([r[5] for r in rows], dtype=float),
-        pressure_sd_kpa=np.array([r[6] for r in rows], dtype=float),
+        mean_g=mean,
+        sd_g=sd,
+        n=(hi - lo).astype(np.int64),
+        t_start_s=t[lo].astype(float),
+        t_end_s=t[hi - 1].astype(float),
+        temp_c=temp_mean,
+        pressure_sd_kpa=psd,
     )
+
+
+def _emit(t: np.ndarray, x: np.ndarray, g0: int, starts: list[np.ndarray], ends: list[int],
+          cfg: DetectorConfig) -> StillWindows:
+    """Table of the pieces cut by :func:`_piece_ranges` (global indices; ``g0`` is the
+    buffer's first; ``ends[i]`` the last sample of the last piece of ``starts[i]``)."""
+    lo_parts, hi_parts = [], []
+    for s, e in zip(starts, ends):
+        if s.size:
+            lo_parts.append(s - g0)
+            hi_parts.append(np.append(s[1:], e + 1) - g0)
+    if not lo_parts:
+        return StillWindows()
+    return _pieces_table(t, x, np.concatenate(lo_parts), np.concatenate(hi_parts), cfg)
+
+
+def _by_channel(acc_g: np.ndarray, pressure_kpa: np.ndarray, temp_c: np.ndarray,
+                state: DetectorState | None = None) -> np.ndarray:
+    """``(4 + k, b + n)`` by channel: acc (g), pressure (kPa), temperature (°C); the
+    state's buffered samples first when given."""
+    k = pressure_kpa.shape[1]
+    b = 0 if state is None else state.t_s.shape[0]
+    n = acc_g.shape[0]
+    x = np.empty((4 + k, b + n))
+    if b:
+        x[:3, :b] = state.acc_g.T
+        if k:
+            x[3 : 3 + k, :b] = state.pressure_kpa.T
+        x[-1, :b] = state.temp_c
+    x[:3, b:] = acc_g.T
+    if k:
+        x[3 : 3 + k, b:] = pressure_kpa.T
+    x[-1, b:] = temp_c
+    return x
 
 
 def step(
@@ -579,37 +723,38 @@ def step(
     """
     if t_s.shape[0] == 0:
         return state, StillWindows()
+    if t_s.shape[0] > _STEP_SAMPLES:  # long chunks in cache-sized steps (same windows)
+        parts = []
+        for lo in range(0, t_s.shape[0], _STEP_SAMPLES):
+            sl = slice(lo, lo + _STEP_SAMPLES)
+            state, part = step(state, t_s[sl], acc_g[sl], temp_c[sl], pressure_kpa[sl], cfg, to_cal)
+            parts.append(part)
+        return state, StillWindows.concat(parts)
     w = cfg.window_samples
     trim = cfg.trim_samples
     g0 = state.buf_start
+    kp = pressure_kpa.shape[1]
     t = np.concatenate((state.t_s, t_s))
-    acc = np.concatenate((state.acc_g, acc_g), axis=0)
-    temp = np.concatenate((state.temp_c, temp_c))
-    old_p = state.pressure_kpa
-    if old_p.shape[0] == 0:
-        old_p = np.zeros((0, pressure_kpa.shape[1]))
-    pres = np.concatenate((old_p, pressure_kpa), axis=0)
+    x = _by_channel(acc_g, pressure_kpa, temp_c, state)  # (4 + kp, b + n)
     n_total = g0 + t.shape[0]
 
     # New test windows: j0 .. n_total - W (global), all starting inside the buffer.
     j0 = max(state.n_seen - w + 1, 0)
     l0 = j0 - g0
-    flags = _window_flags(t[l0:], acc[l0:], pres[l0:], cfg, to_cal)
+    flags = _window_flags(t[l0:], x[: 3 + kp, l0:], cfg, to_cal)
 
     run_open = state.run_open
     piece_start = state.piece_start
     last_end = state.last_end
-    rows: list[tuple] = []
-    buf = (t, acc, temp, pres)
+    cut_starts: list[np.ndarray] = []
+    cut_ends: list[int] = []
     if flags.size:
         d = np.diff(np.concatenate(([run_open], flags)).astype(np.int8))
         starts = (np.flatnonzero(d == 1) + j0).tolist()
         ends = (np.flatnonzero(d == -1) + j0 - 1).tolist()  # last passing window
-        runs: list[tuple[int | None, int | None]] = []
-        if run_open:
-            runs.append((None, ends.pop(0) if ends else None))
-        for a in starts:
-            runs.append((a, ends.pop(0) if ends else None))
+        # Runs: (first passing window or None if it opened before, last or None if open).
+        firsts: list[int | None] = ([None] if run_open else []) + starts
+        runs = [(a, ends[i] if i < len(ends) else None) for i, a in enumerate(firsts)]
         last_window = n_total - w
         for a, b in runs:  # loop over runs, not samples
             if a is not None:
@@ -617,12 +762,16 @@ def step(
                 run_open = True
             if b is not None:
                 seg_end = b + w - 1 - trim
-                piece_start = _emit_pieces(buf, g0, piece_start, seg_end, True, cfg, rows)
+                s, piece_start = _piece_ranges(piece_start, seg_end, True, cfg)
+                cut_starts.append(s)
+                cut_ends.append(piece_start - 1)
                 last_end = max(last_end, seg_end)
                 run_open = False
             else:
                 known_end = last_window + w - 1 - trim
-                piece_start = _emit_pieces(buf, g0, piece_start, known_end, False, cfg, rows)
+                s, piece_start = _piece_ranges(piece_start, known_end, False, cfg)
+                cut_starts.append(s)
+                cut_ends.append(piece_start - 1)
 
     keep = n_total - w + 1
     if run_open:
@@ -633,26 +782,27 @@ def step(
         n_seen=n_total,
         buf_start=keep,
         t_s=t[k:].copy(),
-        acc_g=acc[k:].copy(),
-        temp_c=temp[k:].copy(),
-        pressure_kpa=pres[k:].copy(),
-        n_pressure=pressure_kpa.shape[1],
+        acc_g=x[:3, k:].T.copy(),
+        temp_c=x[-1, k:].copy(),
+        pressure_kpa=x[3 : 3 + kp, k:].T.copy(),
+        n_pressure=kp,
         run_open=run_open,
         piece_start=piece_start,
         last_end=last_end,
     )
-    return new_state, _table(rows)
+    return new_state, _emit(t, x, g0, cut_starts, cut_ends, cfg)
 
 
 def flush_state(state: DetectorState, cfg: DetectorConfig) -> tuple[DetectorState, StillWindows]:
     """Pure kernel: end of stream. Close an open run; return a fresh state and the
     windows it closed."""
-    rows: list[tuple] = []
+    windows = StillWindows()
     if state.run_open and state.n_seen >= cfg.window_samples:
-        buf = (state.t_s, state.acc_g, state.temp_c, state.pressure_kpa)
+        x = _by_channel(state.acc_g, state.pressure_kpa, state.temp_c)
         seg_end = state.n_seen - 1 - cfg.trim_samples
-        _emit_pieces(buf, state.buf_start, state.piece_start, seg_end, True, cfg, rows)
-    return DetectorState(), _table(rows)
+        s, nxt = _piece_ranges(state.piece_start, seg_end, True, cfg)
+        windows = _emit(state.t_s, x, state.buf_start, [s], [nxt - 1], cfg)
+    return DetectorState(), windows
 
 
 # ------------------------------------------------------------------------------ class
