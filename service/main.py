@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import datetime as _dt
+import hashlib
 import logging
 import sys
 import time
@@ -39,6 +40,7 @@ from selfcal_service.schemas import (
     FieldError,
     HealthOut,
     HistoryOut,
+    ReadyOut,
     RollbackIn,
     SampleBatchIn,
     VersionOut,
@@ -48,7 +50,15 @@ from selfcal_service.schemas import (
 )
 from selfcal_service.settings import Settings
 from selfcal_service.sqlite_store import SQLiteStore
-from selfcal_service.storage import DeviceRecord, NewVersion, Storage, VersionRecord
+from selfcal_service.storage import (
+    DeviceRecord,
+    NewVersion,
+    SeqConflict,
+    SeqJump,
+    Storage,
+    StorageUnavailable,
+    VersionRecord,
+)
 from selfcal_service.worker import CalibratorFactory, RefitWorker
 
 log = logging.getLogger("selfcal.service")
@@ -157,6 +167,9 @@ def calibration_out(device_id: str, dev: DeviceRecord, ver: VersionRecord | None
         samples_processed=dev.samples_processed,
         batches_stored=dev.batches_stored,
         processed_seq=dev.processed_seq,
+        rejected_batches=dev.rejected_batches,
+        rejected_samples=dev.rejected_samples,
+        last_rejection=dev.last_rejection,
     )
 
 
@@ -201,6 +214,54 @@ async def _admin_publish(worker: RefitWorker, device_id: str, version: NewVersio
         raise FieldError(field, f"cannot install this calibration: {exc}") from None
 
 
+def _allowed_methods(app: FastAPI, path: str) -> list[str]:
+    """Methods of the routes that match ``path`` (for a 405's ``Allow`` header)."""
+    methods: set[str] = set()
+    for route in app.routes:
+        match = getattr(route, "path_regex", None)
+        if match is not None and match.match(path) and getattr(route, "methods", None):
+            methods |= set(route.methods)
+    if "GET" in methods:
+        methods.add("HEAD")
+    return sorted(methods)
+
+
+def check_admin_calibration(model_name: str, matrix, offset, params: dict | None, guard) -> None:
+    """The plausibility rules of the refit guard, for an admin write; FieldError if not.
+
+    ``a_cal_g = matrix @ (raw_g - offset_g)``: the matrix must be finite, well
+    conditioned (singular values within 10x of each other) with a positive
+    determinant, and the parameters it implies (or the given ``params``) within the
+    guard's plausible ranges ([guard] max_bias_g, max_scale_dev, ...).
+    """
+    import numpy as np
+
+    from selfcal.fit import implausible
+    from selfcal.models import ErrorModel
+
+    m = np.asarray(matrix, dtype=float)
+    o = np.asarray(offset, dtype=float)
+    if not (np.isfinite(m).all() and np.isfinite(o).all()):
+        raise FieldError("matrix", "matrix and offset must be finite")
+    sv = np.linalg.svd(m, compute_uv=False)
+    det = float(np.linalg.det(m))
+    if not (sv[-1] > 0 and sv[0] / sv[-1] <= 10.0 and det > 0):
+        raise FieldError("matrix", f"not a plausible correction: singular values {np.round(sv, 4).tolist()}, "
+                         f"determinant {det:.4g} (needs det > 0 and a condition number <= 10)")
+    try:
+        model = ErrorModel(model_name)
+        theta = model.from_linear(m, o)
+        where = "matrix"
+        if params:
+            theta = model.from_dict(params)
+            where = "params"
+    except (InputError, ValueError, np.linalg.LinAlgError) as exc:
+        raise FieldError("params", str(exc)) from None
+    reason = implausible(model, theta, guard)
+    if reason:
+        raise FieldError(where, f"implausible calibration: {reason}")
+
+
 def get_store(request: Request) -> Storage:
     return request.app.state.store
 
@@ -230,6 +291,9 @@ def create_app(
     )
     keys = KeyRing(settings.api_keys)
     metrics = Metrics()
+    from selfcal.fit import GuardConfig
+
+    guard = GuardConfig.from_section((config or {}).get("guard"))
     if len(keys) == 0:
         log.warning("no API keys configured (SELFCAL_API_KEYS): every request but /healthz gets 401")
 
@@ -251,6 +315,7 @@ def create_app(
             threads=settings.worker_threads,
             max_batches_per_cycle=settings.worker_max_batches_per_cycle,
             time_reset_gap_s=settings.time_reset_gap_s,
+            reorder_window_s=settings.reorder_window_s,
         )
         worker.start()
         app.state.store, app.state.worker = st, worker
@@ -292,8 +357,15 @@ def create_app(
     async def _field(request: Request, exc: FieldError) -> Response:
         if request.url.path.endswith("/samples"):
             metrics.inc("selfcal_ingest_rejected_total", status=str(exc.status))
-        kind = {413: "too_large", 415: "unsupported_media_type"}.get(exc.status, "validation_error")
+        kind = {404: "not_found", 409: "conflict", 413: "too_large",
+                415: "unsupported_media_type"}.get(exc.status, "validation_error")
         return _error(exc.status, kind, f"{exc.field}: {exc.message}", exc.field)
+
+    @app.exception_handler(StorageUnavailable)
+    async def _unavailable(request: Request, exc: StorageUnavailable) -> Response:
+        metrics.inc("selfcal_storage_unavailable_total")
+        return _error(503, "storage_unavailable", f"{exc} (nothing was stored; retry later)", None,
+                      {"Retry-After": "5"})
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, exc: RequestValidationError) -> Response:
@@ -303,7 +375,11 @@ def create_app(
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException) -> Response:
-        return _error(exc.status_code, "http_error", str(exc.detail))
+        headers = dict(exc.headers or {})
+        kind = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
+        if exc.status_code == 405:
+            headers["Allow"] = ", ".join(_allowed_methods(request.app, request.url.path))
+        return _error(exc.status_code, kind, str(exc.detail), None, headers or None)
 
     @app.exception_handler(Exception)
     async def _crash(request: Request, exc: Exception) -> Response:  # pragma: no cover - defensive
@@ -357,14 +433,12 @@ def create_app(
         ctype = _content_type(request)
         if ctype == BINARY_MEDIA_TYPE:
             batch = decode_binary(body)
-            payload = body
         elif ctype == "application/json":
             try:
                 parsed = SampleBatchIn.model_validate_json(body)
             except ValidationError as exc:
                 raise RequestValidationError(exc.errors()) from None
             batch = parsed.to_batch()
-            payload = None
         else:
             raise FieldError("Content-Type", f"expected application/json or {BINARY_MEDIA_TYPE}", 415)
         check_batch(
@@ -372,20 +446,22 @@ def create_app(
             max_samples=settings.max_batch_samples,
             max_pressure_channels=settings.max_pressure_channels,
         )
-        if payload is None:
-            payload = batch.to_bytes()
-        result = await asyncio.wrap_future(
-            store.submit_batch(device_id, batch.seq, batch.n, payload, time.time())
-        )
+        payload = batch.to_bytes()  # canonical: the same samples give the same bytes either way
+        digest = hashlib.sha256(payload).digest()
+        try:
+            result = await asyncio.wrap_future(store.submit_batch(
+                device_id, batch.seq, batch.n, payload, time.time(), digest, settings.max_seq_jump))
+        except SeqConflict as exc:
+            metrics.inc("selfcal_ingest_conflicts_total")
+            raise FieldError("seq", str(exc), 409) from None
+        except SeqJump as exc:
+            raise FieldError("seq", str(exc), 422) from None
         if result.duplicate:
             metrics.inc("selfcal_ingest_duplicates_total")
         else:
             metrics.inc("selfcal_ingest_batches_total")
             metrics.inc("selfcal_ingest_samples_total", batch.n)
-            if result.late:
-                metrics.inc("selfcal_ingest_late_total")
-            else:
-                worker.notify(device_id)
+            worker.notify(device_id)
         return _json({"device_id": device_id, "seq": batch.seq, "accepted": batch.n, "duplicate": result.duplicate})
 
     @app.get(
@@ -419,6 +495,7 @@ def create_app(
         assert isinstance(body, FactoryCalibrationIn)
         if body.model != settings.calibrator_model:
             raise FieldError("model", f"this service runs model {settings.calibrator_model!r}, got {body.model!r}")
+        check_admin_calibration(body.model, body.matrix, body.offset, body.params, guard)
         calib = body.model_dump(exclude_none=True, exclude={"note"})
         calib.setdefault("params", {})
         calib.setdefault("std", {})
@@ -517,7 +594,7 @@ def create_app(
     @app.get(
         "/healthz",
         response_model=HealthOut,
-        responses={503: {"model": HealthOut, "description": "database or a worker is down"}},
+        responses={503: {"model": HealthOut, "description": "a thread of the service died: restart it"}},
         summary="liveness (no key needed)", tags=["ops"])
     async def healthz(request: Request) -> Response:
         store: Storage = request.app.state.store
@@ -529,6 +606,29 @@ def create_app(
             {"status": "ok" if ok else "degraded", "db": db, "workers_alive": alive, "pending_devices": worker.queue_depth()},
             200 if ok else 503,
         )
+
+    @app.get(
+        "/readyz",
+        response_model=ReadyOut,
+        responses={503: {"model": ReadyOut, "description": "storage not writable, a worker down, or backlog too large"}},
+        summary="readiness (no key needed): a write probe, the workers, the backlog", tags=["ops"])
+    async def readyz(request: Request) -> Response:
+        store: Storage = request.app.state.store
+        worker: RefitWorker = request.app.state.worker
+        problem = store.identity_problem() if hasattr(store, "identity_problem") else None
+        if problem is None:
+            problem = await run_in_threadpool(store.probe_write, 2.0)
+        alive = worker.alive()
+        try:
+            backlog = await run_in_threadpool(store.backlog)
+        except Exception as exc:  # noqa: BLE001 - readiness reports, never raises
+            backlog = -1
+            problem = problem or f"cannot read the backlog: {exc}"
+        ready = (problem is None and alive == settings.worker_threads
+                 and 0 <= backlog <= settings.max_backlog_batches)
+        return _json({"ready": ready, "storage_writable": problem is None, "storage_problem": problem,
+                      "workers_alive": alive, "backlog_batches": backlog,
+                      "max_backlog_batches": settings.max_backlog_batches}, 200 if ready else 503)
 
     @app.get(
         "/metrics",

@@ -6,14 +6,17 @@ Units are in every field name. Two encodings of the same sample batch are accept
 * ``application/json`` — columnar :class:`SampleBatchIn` (``extra="forbid"``, strict
   numbers, ``NaN``/``Infinity`` tokens rejected with the field named);
 * ``application/x-selfcal-batch`` — the compact little-endian layout below, decoded
-  with ``numpy.frombuffer`` (no per-number parsing). The same bytes are what the
-  service stores as the durable raw batch.
+  with ``numpy.frombuffer`` (no per-number parsing). Version 2 (magic ``SCB2``) ends
+  with a CRC-32 of everything before it, so a flipped bit is refused (422, field
+  ``crc32``) instead of stored; version 1 (``SCB1``, no checksum) is still accepted.
+  The service stores every batch in the version-1 layout (its canonical bytes, whose
+  SHA-256 tells a resent batch from a different one).
 
 Binary layout (all little-endian, no padding)::
 
     offset  size   field
-    0       4      magic          b"SCB1"
-    4       8      seq            int64, >= 0
+    0       4      magic          b"SCB1" (no checksum) or b"SCB2" (CRC-32 at the end)
+    4       8      seq            int64, 0 .. 2**53 - 1
     12      4      n              uint32, samples in the batch (>= 1)
     16      2      k              uint16, pressure channels per sample (0 = none)
     18      2      flags          uint16, bit 0 = temp_c present, other bits 0
@@ -23,13 +26,16 @@ Binary layout (all little-endian, no padding)::
             8n     az_g           float64[n]
             8n     temp_c         float64[n]      (only if flags bit 0)
             8nk    pressure_kpa   float64[n*k]    sample-major: p1..pk of sample 0, ...
+            4      crc32          uint32, SCB2 only: zlib/IEEE CRC-32 of all bytes before it
 
-The body length must be exactly ``20 + 8n(4 + t + k)`` with t = 1 if temp_c present.
+The body length must be exactly ``20 + 8n(4 + t + k)`` (SCB1) or that plus 4 (SCB2),
+with t = 1 if temp_c present.
 """
 
 from __future__ import annotations
 
 import struct
+import zlib
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
@@ -43,12 +49,13 @@ ACC_LIMIT_G = 16.0
 TEMP_MIN_C, TEMP_MAX_C = -40.0, 85.0  # industrial operating range of MEMS parts
 PRESSURE_MIN_KPA, PRESSURE_MAX_KPA = 0.0, 2000.0  # 200 N/cm^2: far above body weight
 T_ABS_MAX_S = 1e10  # device clock or Unix time; beyond year 2286 is a bug
-SEQ_MAX = 2**63 - 1
+SEQ_MAX = 2**53 - 1  # exact in every JSON parser
 #: Device ids: ASCII letter/digit first, then up to 63 of letters, digits, . _ : -
 DEVICE_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,63}$"
 
 BINARY_MEDIA_TYPE = "application/x-selfcal-batch"
 BINARY_MAGIC = b"SCB1"
+BINARY_MAGIC_CRC = b"SCB2"
 _HEADER = struct.Struct("<4sqIHH")
 BINARY_HEADER_BYTES = _HEADER.size  # 20
 FLAG_TEMP = 1
@@ -79,13 +86,13 @@ class Batch:
     def n(self) -> int:
         return int(self.t_s.shape[0])
 
-    def to_bytes(self) -> bytes:
-        """Encode in the binary layout of this module's docstring."""
+    def to_bytes(self, crc: bool = False) -> bytes:
+        """Encode in the binary layout of this module's docstring (``crc``: version 2)."""
         n = self.n
         k = 0 if self.pressure_kpa is None else int(self.pressure_kpa.shape[1])
         flags = FLAG_TEMP if self.temp_c is not None else 0
         parts = [
-            _HEADER.pack(BINARY_MAGIC, self.seq, n, k, flags),
+            _HEADER.pack(BINARY_MAGIC_CRC if crc else BINARY_MAGIC, self.seq, n, k, flags),
             np.ascontiguousarray(self.t_s, dtype="<f8").tobytes(),
             np.ascontiguousarray(self.acc_g.T, dtype="<f8").tobytes(),
         ]
@@ -93,7 +100,8 @@ class Batch:
             parts.append(np.ascontiguousarray(self.temp_c, dtype="<f8").tobytes())
         if self.pressure_kpa is not None:
             parts.append(np.ascontiguousarray(self.pressure_kpa, dtype="<f8").tobytes())
-        return b"".join(parts)
+        body = b"".join(parts)
+        return body + struct.pack("<I", zlib.crc32(body)) if crc else body
 
 
 def decode_binary(body: bytes) -> Batch:
@@ -101,10 +109,19 @@ def decode_binary(body: bytes) -> Batch:
     if len(body) < BINARY_HEADER_BYTES:
         raise FieldError("body", f"binary batch shorter than the {BINARY_HEADER_BYTES}-byte header")
     magic, seq, n, k, flags = _HEADER.unpack_from(body, 0)
-    if magic != BINARY_MAGIC:
-        raise FieldError("magic", f"expected {BINARY_MAGIC!r}, got {magic!r}")
-    if seq < 0:
-        raise FieldError("seq", "must be >= 0")
+    if magic not in (BINARY_MAGIC, BINARY_MAGIC_CRC):
+        raise FieldError("magic", f"expected {BINARY_MAGIC_CRC!r} or {BINARY_MAGIC!r}, got {magic!r}")
+    if magic == BINARY_MAGIC_CRC:
+        if len(body) < BINARY_HEADER_BYTES + 4:
+            raise FieldError("body", "binary batch too short for its CRC-32")
+        (want,) = struct.unpack_from("<I", body, len(body) - 4)
+        got = zlib.crc32(memoryview(body)[:-4])
+        if got != want:
+            raise FieldError("crc32", f"checksum mismatch (0x{got:08x} computed, 0x{want:08x} sent): "
+                             "the batch was corrupted on the way")
+        body = body[:-4]
+    if not 0 <= seq <= SEQ_MAX:
+        raise FieldError("seq", f"must be in 0..{SEQ_MAX}, got {seq}")
     if n < 1:
         raise FieldError("n", "a batch holds at least one sample")
     if flags & ~FLAG_TEMP:
@@ -277,6 +294,10 @@ class CalibrationOut(BaseModel):
     samples_processed: int = 0
     batches_stored: int = 0
     processed_seq: int | None = Field(None, description="highest batch seq fed to the calibrator")
+    rejected_batches: int = Field(0, description="stored batches never fed (late, or refused by the calibrator)")
+    rejected_samples: int = Field(0, description="samples of those batches")
+    last_rejection: dict[str, Any] | None = Field(
+        None, description="the last rejected batch: {seq, reason, at (Unix s)}")
 
 
 class Provenance(BaseModel):
@@ -320,10 +341,23 @@ class DevicesOut(BaseModel):
 
 
 class HealthOut(BaseModel):
+    """Liveness: the process answers and its threads run (restart it if not)."""
+
     status: Literal["ok", "degraded"]
     db: bool
     workers_alive: int
     pending_devices: int
+
+
+class ReadyOut(BaseModel):
+    """Readiness: the service can take and process data now."""
+
+    ready: bool
+    storage_writable: bool
+    storage_problem: str | None = None
+    workers_alive: int
+    backlog_batches: int = Field(description="stored batches neither fed nor rejected yet")
+    max_backlog_batches: int
 
 
 class RollbackIn(BaseModel):

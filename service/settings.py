@@ -45,6 +45,16 @@ class Settings(BaseModel):
     time_reset_gap_s: float = Field(
         60.0, gt=0, description="gap inserted when a device clock goes backwards (reboot)"
     )
+    reorder_window_s: float = Field(
+        10.0, ge=0, le=3600,
+        description="a batch whose predecessor seq is missing waits this long for it before being fed",
+    )
+    max_seq_jump: int = Field(
+        100_000, ge=1, description="a seq this far above the device's highest stored seq gets 422",
+    )
+    max_backlog_batches: int = Field(
+        100_000, ge=1, description="/readyz fails above this many stored batches not yet fed",
+    )
     calibrator: str = Field(
         "selfcal.calibrator:OnlineCalibrator",
         description="import path module:Class of the calibrator (tests inject a fake)",

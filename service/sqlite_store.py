@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import queue
 import sqlite3
 import threading
 import time
 from concurrent.futures import Future
+from pathlib import Path
 from typing import Any, Callable
 
 from selfcal_service.storage import (
@@ -28,14 +30,18 @@ from selfcal_service.storage import (
     DeviceRecord,
     IngestResult,
     NewVersion,
+    PendingBatch,
     Progress,
+    SeqConflict,
+    SeqJump,
     Storage,
+    StorageUnavailable,
     VersionRecord,
 )
 
 log = logging.getLogger("selfcal.service.sqlite")
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
@@ -53,7 +59,10 @@ CREATE TABLE IF NOT EXISTS devices (
     last_refit        TEXT,
     feed_state        TEXT,
     current_version   INTEGER,
-    updated_at        REAL
+    updated_at        REAL,
+    rejected_batches  INTEGER NOT NULL DEFAULT 0,
+    rejected_samples  INTEGER NOT NULL DEFAULT 0,
+    last_rejection    TEXT
 );
 CREATE TABLE IF NOT EXISTS batches (
     device_id   TEXT NOT NULL,
@@ -61,8 +70,12 @@ CREATE TABLE IF NOT EXISTS batches (
     n_samples   INTEGER NOT NULL,
     received_at REAL NOT NULL,
     payload     BLOB NOT NULL,
+    digest      BLOB,
+    state       INTEGER NOT NULL DEFAULT 0,
+    reason      TEXT,
     PRIMARY KEY (device_id, seq)
 );
+CREATE INDEX IF NOT EXISTS batches_pending ON batches (device_id, seq) WHERE state = 0;
 CREATE TABLE IF NOT EXISTS versions (
     device_id   TEXT NOT NULL,
     version     INTEGER NOT NULL,
@@ -75,10 +88,32 @@ CREATE TABLE IF NOT EXISTS versions (
 );
 """
 
+#: Batch states: pending, fed to the calibrator once, rejected with a reason.
+PENDING, FED, REJECTED = 0, 1, 2
+
+#: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
+MIGRATIONS = {
+    1: [
+        # v1 had no per-batch state: a batch at or below processed_seq was handled then
+        # (fed, or skipped as late without a record); it is marked fed.
+        "ALTER TABLE batches ADD COLUMN digest BLOB",
+        "ALTER TABLE batches ADD COLUMN state INTEGER NOT NULL DEFAULT 0",
+        "ALTER TABLE batches ADD COLUMN reason TEXT",
+        "UPDATE batches SET state = 1 WHERE seq <= COALESCE((SELECT d.processed_seq FROM devices d "
+        "WHERE d.device_id = batches.device_id), -1)",
+        "CREATE INDEX IF NOT EXISTS batches_pending ON batches (device_id, seq) WHERE state = 0",
+        "ALTER TABLE devices ADD COLUMN rejected_batches INTEGER NOT NULL DEFAULT 0",
+        "ALTER TABLE devices ADD COLUMN rejected_samples INTEGER NOT NULL DEFAULT 0",
+        "ALTER TABLE devices ADD COLUMN last_rejection TEXT",
+    ],
+}
+
 _DEVICE_COLS = (
     "device_id, batches_stored, processed_seq, samples_processed, calibrator_state, "
-    "calibrator_status, last_refit, feed_state, current_version, updated_at"
+    "calibrator_status, last_refit, feed_state, current_version, updated_at, "
+    "rejected_batches, rejected_samples, last_rejection"
 )
+_N_DEVICE_COLS = 13
 
 _STOP = object()
 
@@ -95,6 +130,9 @@ def _device(row: tuple) -> DeviceRecord:
         feed_state=json.loads(row[7]) if row[7] else {},
         current_version=row[8],
         updated_at=row[9],
+        rejected_batches=row[10] or 0,
+        rejected_samples=row[11] or 0,
+        last_rejection=json.loads(row[12]) if row[12] else None,
     )
 
 
@@ -127,10 +165,14 @@ class SQLiteStore(Storage):
         self._conns_lock = threading.Lock()
         self.commits = 0  # transactions committed (for metrics)
         self.ops_committed = 0
+        self.last_write_error: tuple[float, str] | None = None
+        self._identity: tuple[int, int] | None = None
 
     # ------------------------------------------------------------ connections
     def _connect(self) -> sqlite3.Connection:
-        conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=30.0)
+        # mode=rw: never create a file here (a deleted database must not come back empty)
+        uri = Path(self.path).resolve().as_uri() + "?mode=rw"
+        conn = sqlite3.connect(uri, uri=True, isolation_level=None, check_same_thread=False, timeout=30.0)
         conn.execute("PRAGMA busy_timeout=30000")
         conn.execute(f"PRAGMA synchronous={self.synchronous}")
         with self._conns_lock:
@@ -148,15 +190,44 @@ class SQLiteStore(Storage):
         mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
         if mode.lower() != "wal":
             raise RuntimeError(f"db_path {self.path}: could not enable WAL (got {mode})")
-        conn.executescript(_SCHEMA)
-        row = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+        has_meta = conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'meta'").fetchone()
+        row = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() if has_meta else None
         if row is None:
-            conn.execute("INSERT INTO meta(key, value) VALUES('schema_version', ?)", (str(SCHEMA_VERSION),))
-        elif int(row[0]) != SCHEMA_VERSION:
-            raise RuntimeError(f"db_path {self.path}: schema version {row[0]}, expected {SCHEMA_VERSION}")
+            conn.executescript(_SCHEMA)
+            conn.execute("INSERT OR REPLACE INTO meta(key, value) VALUES('schema_version', ?)", (str(SCHEMA_VERSION),))
+        else:
+            version = int(row[0])
+            if version > SCHEMA_VERSION:
+                raise RuntimeError(f"db_path {self.path}: schema version {version} is newer than this "
+                                   f"service's {SCHEMA_VERSION}; upgrade selfcal")
+            while version < SCHEMA_VERSION:  # versioned migrations, each in one transaction
+                conn.execute("BEGIN IMMEDIATE")
+                for stmt in MIGRATIONS[version]:
+                    conn.execute(stmt)
+                version += 1
+                conn.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(version),))
+                conn.execute("COMMIT")
+                log.warning("db_path %s: migrated to schema version %d", self.path, version)
         conn.close()
+        self._identity = self._file_identity()
         self._writer = threading.Thread(target=self._write_loop, name="selfcal-sqlite-writer", daemon=True)
         self._writer.start()
+
+    def _file_identity(self) -> tuple[int, int] | None:
+        try:
+            st = os.stat(self.path)
+        except OSError:
+            return None
+        return (st.st_dev, st.st_ino)
+
+    def identity_problem(self) -> str | None:
+        """Why the database file is no longer the one opened (deleted, replaced), or None."""
+        now = self._file_identity()
+        if now is None:
+            return f"database file {self.path} was deleted while the service runs"
+        if now != self._identity:
+            return f"database file {self.path} was replaced while the service runs"
+        return None
 
     def close(self) -> None:
         if self._writer is not None:
@@ -202,13 +273,24 @@ class SQLiteStore(Storage):
                 ops.append(nxt)
             results: list[tuple[Future, bool, Any]] = []
             try:
+                problem = self.identity_problem()
+                if problem:  # never acknowledge into an unlinked or foreign file
+                    raise StorageUnavailable(problem)
+                if conn is None:
+                    conn = self._connect()
                 conn.execute("BEGIN IMMEDIATE")
                 for fn, fut in ops:
                     conn.execute("SAVEPOINT op")
                     try:
                         value = fn(conn)
-                    except Exception as exc:  # one bad write must not sink the group
+                    except (sqlite3.OperationalError, sqlite3.DatabaseError) as exc:
+                        if not isinstance(exc, sqlite3.IntegrityError):
+                            raise  # read-only, full, I/O: the whole group fails below
                         conn.execute("ROLLBACK TO op")
+                        conn.execute("RELEASE op")
+                        results.append((fut, False, exc))
+                    except Exception as exc:
+                        conn.execute("ROLLBACK TO op")  # one bad write must not sink the group
                         conn.execute("RELEASE op")
                         results.append((fut, False, exc))
                     else:
@@ -216,15 +298,33 @@ class SQLiteStore(Storage):
                         results.append((fut, True, value))
                 conn.execute("COMMIT")
             except Exception as exc:
-                log.exception("group commit failed")
-                try:
-                    conn.execute("ROLLBACK")
-                except sqlite3.Error:
-                    pass
+                reason = exc if isinstance(exc, StorageUnavailable) else StorageUnavailable(
+                    f"database write failed: {type(exc).__name__}: {exc}")
+                if self.last_write_error is None:  # log once per outage, not per request
+                    log.error("storage unavailable: %s", reason)
+                self.last_write_error = (time.time(), str(reason))
+                if conn is not None:
+                    try:
+                        conn.execute("ROLLBACK")
+                    except sqlite3.Error:
+                        pass
+                    # A fresh connection next time: SQLite may keep a read-only or I/O
+                    # error state on the old one after the fault is fixed.
+                    try:
+                        conn.close()
+                    except sqlite3.Error:
+                        pass
+                    with self._conns_lock:
+                        if conn in self._conns:
+                            self._conns.remove(conn)
+                conn = self._reconnect()
                 for _, fut in ops:
                     if not fut.done():
-                        fut.set_exception(exc)
+                        fut.set_exception(reason)
                 continue
+            if self.last_write_error is not None:
+                log.warning("storage writable again")
+            self.last_write_error = None
             self.commits += 1
             self.ops_committed += len(ops)
             for fut, ok, value in results:  # only now: the commit is durable
@@ -233,33 +333,58 @@ class SQLiteStore(Storage):
                 else:
                     fut.set_exception(value)
 
+    def _reconnect(self) -> sqlite3.Connection | None:
+        try:
+            return self._connect()
+        except sqlite3.Error:
+            return None  # the file is gone or unreadable; try again with the next write
+
+    def probe_write(self, timeout_s: float = 2.0) -> str | None:
+        def op(conn: sqlite3.Connection) -> None:
+            conn.execute("INSERT OR REPLACE INTO meta(key, value) VALUES('ready_probe', ?)", (repr(time.time()),))
+
+        try:
+            self._submit(op).result(timeout=timeout_s)
+        except Exception as exc:  # noqa: BLE001 - any failure is the answer
+            return str(exc) or type(exc).__name__
+        return None
+
     # ------------------------------------------------------------ ingest
-    def submit_batch(self, device_id: str, seq: int, n_samples: int, payload: bytes, received_at: float) -> Future:
+    def submit_batch(self, device_id: str, seq: int, n_samples: int, payload: bytes, received_at: float,
+                     digest: bytes, max_seq_jump: int) -> Future:
         def op(conn: sqlite3.Connection) -> IngestResult:
-            cur = conn.execute(
-                "INSERT OR IGNORE INTO batches(device_id, seq, n_samples, received_at, payload) "
-                "VALUES (?, ?, ?, ?, ?)",
-                (device_id, seq, n_samples, received_at, payload),
-            )
-            if cur.rowcount == 0:
-                return IngestResult(duplicate=True, late=False)
-            row = conn.execute(
-                "INSERT INTO devices(device_id, created_at, batches_stored) VALUES (?, ?, 1) "
-                "ON CONFLICT(device_id) DO UPDATE SET batches_stored = batches_stored + 1 "
-                "RETURNING processed_seq",
-                (device_id, received_at),
+            old = conn.execute(
+                "SELECT digest FROM batches WHERE device_id = ? AND seq = ?", (device_id, seq)
             ).fetchone()
-            processed = row[0] if row else None
-            return IngestResult(duplicate=False, late=processed is not None and seq <= processed)
+            if old is not None:
+                if old[0] is not None and old[0] != digest:
+                    raise SeqConflict(
+                        f"seq {seq} of device {device_id!r} is stored with other content; a resent "
+                        "batch must be identical (a new batch needs a new seq)")
+                return IngestResult(duplicate=True)
+            (top,) = conn.execute("SELECT MAX(seq) FROM batches WHERE device_id = ?", (device_id,)).fetchone()
+            if top is not None and seq > top + max_seq_jump:
+                raise SeqJump(
+                    f"seq {seq} is more than {max_seq_jump} above the highest stored seq {top} of device "
+                    f"{device_id!r} (a corrupt seq would strand every later batch)")
+            conn.execute(
+                "INSERT INTO batches(device_id, seq, n_samples, received_at, payload, digest, state) "
+                "VALUES (?, ?, ?, ?, ?, ?, 0)",
+                (device_id, seq, n_samples, received_at, payload, digest),
+            )
+            conn.execute(
+                "INSERT INTO devices(device_id, created_at, batches_stored) VALUES (?, ?, 1) "
+                "ON CONFLICT(device_id) DO UPDATE SET batches_stored = batches_stored + 1",
+                (device_id, received_at),
+            )
+            return IngestResult(duplicate=False)
 
         return self._submit(op)
 
     # ------------------------------------------------------------ worker
     def pending_devices(self) -> list[str]:
         rows = self._reader().execute(
-            "SELECT d.device_id FROM devices d WHERE EXISTS ("
-            " SELECT 1 FROM batches b WHERE b.device_id = d.device_id"
-            " AND b.seq > COALESCE(d.processed_seq, -1)) ORDER BY d.device_id"
+            "SELECT DISTINCT device_id FROM batches WHERE state = 0 ORDER BY device_id"
         ).fetchall()
         return [r[0] for r in rows]
 
@@ -269,11 +394,13 @@ class SQLiteStore(Storage):
         ).fetchone()
         return _device(row) if row else None
 
-    def pending_batches(self, device_id: str, after_seq: int | None, limit: int) -> list[tuple[int, bytes]]:
-        return self._reader().execute(
-            "SELECT seq, payload FROM batches WHERE device_id = ? AND seq > ? ORDER BY seq LIMIT ?",
-            (device_id, -1 if after_seq is None else after_seq, limit),
+    def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:
+        rows = self._reader().execute(
+            "SELECT seq, n_samples, received_at, payload FROM batches WHERE device_id = ? AND state = 0 "
+            "ORDER BY seq LIMIT ?",
+            (device_id, limit),
         ).fetchall()
+        return [PendingBatch(*r) for r in rows]
 
     @staticmethod
     def _insert_version(conn: sqlite3.Connection, device_id: str, v: NewVersion, now: float) -> int:
@@ -312,6 +439,20 @@ class SQLiteStore(Storage):
             )
             if cur.rowcount != 1:
                 raise ConflictError(f"device {p.device_id}: processed_seq changed under the worker")
+            if p.fed_seqs:
+                conn.executemany(
+                    "UPDATE batches SET state = 1 WHERE device_id = ? AND seq = ? AND state = 0",
+                    [(p.device_id, q) for q in p.fed_seqs])
+            if p.rejected:
+                conn.executemany(
+                    "UPDATE batches SET state = 2, reason = ? WHERE device_id = ? AND seq = ? AND state = 0",
+                    [(reason, p.device_id, q) for q, _, reason in p.rejected])
+                q, _, reason = p.rejected[-1]
+                conn.execute(
+                    "UPDATE devices SET rejected_batches = rejected_batches + ?, "
+                    "rejected_samples = rejected_samples + ?, last_rejection = ? WHERE device_id = ?",
+                    (len(p.rejected), sum(r[1] for r in p.rejected),
+                     _dumps({"seq": q, "reason": reason, "at": now}), p.device_id))
             return numbers
 
         return self._submit(op)
@@ -328,8 +469,8 @@ class SQLiteStore(Storage):
         ).fetchone()
         if row is None:
             return None
-        dev = _device(row[:10])
-        ver = _version(row[10:]) if row[10] is not None else None
+        dev = _device(row[:_N_DEVICE_COLS])
+        ver = _version(row[_N_DEVICE_COLS:]) if row[_N_DEVICE_COLS] is not None else None
         return dev, ver
 
     def history(self, device_id: str) -> list[VersionRecord]:
@@ -355,7 +496,10 @@ class SQLiteStore(Storage):
             "WHERE d.device_id > ? ORDER BY d.device_id LIMIT ?",
             (after or "", limit),
         ).fetchall()
-        return [(_device(r[:10]), r[10]) for r in rows]
+        return [(_device(r[:_N_DEVICE_COLS]), r[_N_DEVICE_COLS]) for r in rows]
+
+    def backlog(self) -> int:
+        return int(self._reader().execute("SELECT COUNT(*) FROM batches WHERE state = 0").fetchone()[0])
 
     def ping(self) -> bool:
         try:

@@ -9,10 +9,18 @@ many writes into one commit.
 
 Invariants every implementation keeps:
 
-* ``(device_id, seq)`` is unique in the raw-batch table: a resent seq is a duplicate.
-* ``commit_progress`` writes the calibrator state, the "processed up to" seq, the feed
-  bookkeeping and any newly published versions in **one** transaction, and only if the
-  stored ``processed_seq`` still equals the one the worker started from.
+* ``(device_id, seq)`` is unique in the raw-batch table. A resent seq with the same
+  content (SHA-256 of the canonical batch bytes) is a duplicate; with other content it
+  is refused (:class:`SeqConflict`, HTTP 409) and nothing changes.
+* A seq more than ``max_seq_jump`` above the device's highest stored seq is refused
+  (:class:`SeqJump`, HTTP 422): one corrupt seq cannot strand the device's later
+  batches behind it.
+* Every stored batch is *pending*, then either *fed* to the calibrator exactly once or
+  *rejected* with a reason (for example ``late``); never both, never neither for long.
+  ``processed_seq`` is the highest fed seq.
+* ``commit_progress`` writes the calibrator state, the fed and rejected batches, the
+  feed bookkeeping and any newly published versions in **one** transaction, and only
+  if the stored ``processed_seq`` still equals the one the worker started from.
 * Version numbers of a device are 1, 2, 3, ... in publication order; ``current_version``
   points at the version served by ``GET /devices/{id}/calibration``.
 """
@@ -29,10 +37,31 @@ class ConflictError(Exception):
     """The device changed under a worker (another writer advanced processed_seq)."""
 
 
+class SeqConflict(Exception):
+    """A resent seq whose content differs from the stored batch (HTTP 409)."""
+
+
+class SeqJump(Exception):
+    """A seq too far above the device's highest stored seq (HTTP 422)."""
+
+
+class StorageUnavailable(Exception):
+    """The database cannot take writes now (read-only, full, replaced); HTTP 503."""
+
+
 @dataclass(frozen=True)
 class IngestResult:
     duplicate: bool
-    late: bool  # stored, but its seq is at or below what was already processed
+
+
+@dataclass(frozen=True)
+class PendingBatch:
+    """A stored batch not yet fed nor rejected."""
+
+    seq: int
+    n_samples: int
+    received_at: float
+    payload: bytes
 
 
 @dataclass
@@ -47,6 +76,9 @@ class DeviceRecord:
     feed_state: dict[str, Any]
     current_version: int | None
     updated_at: float | None
+    rejected_batches: int = 0
+    rejected_samples: int = 0
+    last_rejection: dict[str, Any] | None = None
 
 
 @dataclass
@@ -70,6 +102,8 @@ class Progress:
     last_refit: dict[str, Any] | None
     feed_state: dict[str, Any]
     new_versions: list[NewVersion] = field(default_factory=list)
+    fed_seqs: list[int] = field(default_factory=list)
+    rejected: list[tuple[int, int, str]] = field(default_factory=list)  # (seq, n_samples, reason)
 
 
 @dataclass
@@ -96,21 +130,27 @@ class Storage(abc.ABC):
     # -- ingest
     @abc.abstractmethod
     def submit_batch(
-        self, device_id: str, seq: int, n_samples: int, payload: bytes, received_at: float
+        self, device_id: str, seq: int, n_samples: int, payload: bytes, received_at: float,
+        digest: bytes, max_seq_jump: int,
     ) -> "Future[IngestResult]":
-        """Store a raw batch; the future resolves after the commit (durable ack)."""
+        """Store a raw batch; the future resolves after the commit (durable ack).
+
+        ``digest`` is the SHA-256 of the canonical batch bytes (duplicate vs conflict).
+        The future raises :class:`SeqConflict`, :class:`SeqJump` or
+        :class:`StorageUnavailable`; nothing is stored then.
+        """
 
     # -- worker
     @abc.abstractmethod
     def pending_devices(self) -> list[str]:
-        """Devices with stored batches above their processed seq (for restart)."""
+        """Devices with pending (neither fed nor rejected) batches, for restart."""
 
     @abc.abstractmethod
     def load_device(self, device_id: str) -> DeviceRecord | None: ...
 
     @abc.abstractmethod
-    def pending_batches(self, device_id: str, after_seq: int | None, limit: int) -> list[tuple[int, bytes]]:
-        """Raw batches with seq > after_seq, in seq order."""
+    def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:
+        """Pending batches of a device in seq order."""
 
     @abc.abstractmethod
     def commit_progress(self, progress: Progress) -> "Future[list[int]]":
@@ -132,3 +172,11 @@ class Storage(abc.ABC):
 
     @abc.abstractmethod
     def ping(self) -> bool: ...
+
+    @abc.abstractmethod
+    def backlog(self) -> int:
+        """Stored batches that are neither fed nor rejected yet (all devices)."""
+
+    @abc.abstractmethod
+    def probe_write(self, timeout_s: float = 2.0) -> str | None:
+        """Commit a tiny write through the writer; None if it worked, else the reason."""

@@ -19,6 +19,7 @@ import importlib
 import logging
 import math
 import threading
+import time
 import zlib
 from collections import OrderedDict
 from typing import Any, Protocol
@@ -27,7 +28,14 @@ import numpy as np
 
 from selfcal_service.metrics import Metrics
 from selfcal_service.schemas import Batch, decode_binary
-from selfcal_service.storage import DeviceRecord, NewVersion, Progress, Storage
+from selfcal_service.storage import (
+    DeviceRecord,
+    NewVersion,
+    PendingBatch,
+    Progress,
+    Storage,
+    StorageUnavailable,
+)
 
 log = logging.getLogger("selfcal.service.worker")
 
@@ -115,6 +123,7 @@ class RefitWorker:
         threads: int = 1,
         max_batches_per_cycle: int = 256,
         time_reset_gap_s: float = 60.0,
+        reorder_window_s: float = 10.0,
     ):
         self.store = store
         self.factory = factory
@@ -126,6 +135,9 @@ class RefitWorker:
         self._locks: dict[str, threading.Lock] = {}
         self._locks_guard = threading.Lock()
         self._stop = threading.Event()
+        self._held: set[str] = set()  # devices waiting out the reorder window
+        self._held_lock = threading.Lock()
+        self.reorder_window_s = reorder_window_s
         self.busy = 0  # devices being processed right now
         self.cycles = 0
 
@@ -153,7 +165,7 @@ class RefitWorker:
         return sum(len(s.pending) for s in self._shards)
 
     def idle(self) -> bool:
-        return self.queue_depth() == 0 and self.busy == 0
+        return self.queue_depth() == 0 and self.busy == 0 and not self._held
 
     def notify(self, device_id: str) -> None:
         """A device has new committed batches (cheap; called from the event loop)."""
@@ -172,6 +184,7 @@ class RefitWorker:
 
     # ------------------------------------------------------------ loop
     def _loop(self, shard: _Shard) -> None:
+        backoff_s = 0.5
         while not self._stop.is_set():
             with shard.cond:
                 while not shard.pending and not self._stop.is_set():
@@ -182,6 +195,15 @@ class RefitWorker:
                 self.busy += 1
             try:
                 more = self.process(device_id)
+                backoff_s = 0.5
+            except StorageUnavailable as exc:  # a storage fault: no traceback, wait it out
+                if backoff_s == 0.5:
+                    log.warning("refits paused: %s", exc)
+                self.metrics.inc("selfcal_worker_errors_total")
+                self._cache.pop(device_id, None)
+                more = True
+                self._stop.wait(backoff_s)
+                backoff_s = min(5.0, 2 * backoff_s)
             except Exception:
                 log.exception("refit cycle failed for device %s", device_id)
                 self.metrics.inc("selfcal_worker_errors_total")
@@ -208,46 +230,109 @@ class RefitWorker:
             return self.factory.restore(rec.calibrator_state)
         return self.factory.create()
 
+    def _plan(self, rec: DeviceRecord, rows: list[PendingBatch], now: float):
+        """Split pending batches into (to feed now in seq order, rejected late, held).
+
+        The ordering contract: a device's batches are fed in seq order. A batch whose
+        predecessor (seq - 1) has not arrived is held for up to ``reorder_window_s``
+        (from the time the oldest held batch was stored); then the held batches are fed
+        in seq order and the gap is given up. A batch that arrives after a later seq was
+        fed is rejected as ``late`` (counted and reported with its reason, never lost
+        silently). A new device's first batch is fed at once if its seq is 0.
+        """
+        top = rec.processed_seq
+        late = [r for r in rows if top is not None and r.seq < top]
+        fresh = [r for r in rows if top is None or r.seq > top]
+        take: list[PendingBatch] = []
+        expected = 0 if top is None else top + 1
+        for i, r in enumerate(fresh):
+            if r.seq == expected:
+                take.append(r)
+                expected += 1
+                continue
+            rest = fresh[i:]
+            oldest = min(x.received_at for x in rest)
+            if now - oldest >= self.reorder_window_s:
+                take.extend(rest)  # give the gap up: later arrivals in it will be late
+                return take, late, []
+            return take, late, rest
+        return take, late, []
+
     def process(self, device_id: str) -> bool:
         """One cycle for one device; returns True if batches remain."""
         with self.device_lock(device_id):
             rec = self.store.load_device(device_id)
             if rec is None:
                 return False
-            rows = self.store.pending_batches(device_id, rec.processed_seq, self.max_batches)
+            rows = self.store.pending_batches(device_id, self.max_batches)
             if not rows:
                 return False
+            now = time.time()
+            take, late, held = self._plan(rec, rows, now)
+            if held:
+                oldest = min(x.received_at for x in held)
+                self._hold(device_id, max(0.05, oldest + self.reorder_window_s - now))
+            if not take and not late:
+                return False
+            rejected = [(r.seq, r.n_samples, f"late: seq {r.seq} arrived after seq {rec.processed_seq} "
+                         f"was fed (reorder window {self.reorder_window_s:g} s)") for r in late]
             cal = self._calibrator(rec)
             feed = dict(rec.feed_state)
-            batches = [(seq, decode_binary(payload)) for seq, payload in rows]
+            batches = [(r.seq, decode_binary(r.payload)) for r in take]
             try:
                 events, samples = self._feed(cal, batches, feed, rec)
+                fed = [q for q, _ in batches]
             except Exception:
                 log.warning("device %s: calibrator raised; feeding batch by batch", device_id, exc_info=True)
                 cal = self._restore(rec)
                 feed = dict(rec.feed_state)
-                events, samples, cal = self._feed_isolating(cal, batches, feed, rec)
+                events, samples, cal, fed, refused = self._feed_isolating(cal, batches, feed, rec)
+                rejected += refused
             versions = self._versions(cal, events, feed)
             last_refit = jsonable(getattr(cal, "last_refit", None))
             progress = Progress(
                 device_id=device_id,
                 expected_processed_seq=rec.processed_seq,
-                processed_seq=int(rows[-1][0]),
+                processed_seq=max([*fed, *([rec.processed_seq] if rec.processed_seq is not None else [])])
+                if fed else rec.processed_seq,
                 samples_added=samples,
                 calibrator_state=cal.to_json(),
                 calibrator_status=str(cal.status),
                 last_refit=last_refit,
                 feed_state=feed,
                 new_versions=versions,
+                fed_seqs=fed,
+                rejected=rejected,
             )
             self.store.commit_progress(progress).result()  # durable before caching
             self._cache[device_id] = (progress.processed_seq, cal)
             self.cycles += 1
             self.metrics.inc("selfcal_worker_samples_total", samples)
+            for _, n, reason in rejected:
+                kind = reason.split(":", 1)[0]
+                self.metrics.inc("selfcal_rejected_batches_total", reason=kind)
+                self.metrics.inc("selfcal_rejected_samples_total", n, reason=kind)
             for ev in events:
                 outcome = "published" if ev.get("published") else str(ev.get("reason") or "unknown")
                 self.metrics.inc("selfcal_refits_total", outcome=outcome)
-            return len(rows) >= self.max_batches
+            return len(rows) >= self.max_batches and bool(take or late)
+
+    def _hold(self, device_id: str, delay_s: float) -> None:
+        """Look at a device again after ``delay_s`` (batches held for the reorder window)."""
+        with self._held_lock:
+            if device_id in self._held:
+                return
+            self._held.add(device_id)
+
+        def wake() -> None:
+            with self._held_lock:
+                self._held.discard(device_id)
+            if not self._stop.is_set():
+                self.notify(device_id)
+
+        timer = threading.Timer(delay_s, wake)
+        timer.daemon = True
+        timer.start()
 
     # ------------------------------------------------------------ feeding
     def _prepare(self, batch: Batch, seq: int, feed: dict[str, Any]) -> np.ndarray:
@@ -313,10 +398,15 @@ class RefitWorker:
             out.append(ev)
         return out
 
-    def _feed_isolating(self, cal: Calibrator, batches, feed, rec) -> tuple[list, int, Calibrator]:
-        """Slow path: feed one batch at a time; a batch the calibrator refuses is skipped."""
+    def _feed_isolating(self, cal: Calibrator, batches, feed, rec):
+        """Slow path: feed one batch at a time; a batch the calibrator refuses is rejected.
+
+        Returns (events, samples fed, calibrator, fed seqs, [(seq, n, reason)] rejected).
+        """
         events: list[dict[str, Any]] = []
         samples = 0
+        fed: list[int] = []
+        refused: list[tuple[int, int, str]] = []
         for seq, batch in batches:
             snapshot, feed_before = cal.to_json(), dict(feed)
             try:
@@ -325,14 +415,12 @@ class RefitWorker:
                 cal = self.factory.restore(snapshot)
                 feed.clear()
                 feed.update(feed_before)
-                skipped = list(feed.get("skipped", []))[-19:]
-                skipped.append({"seq": int(seq), "error": f"{type(exc).__name__}: {exc}"[:300]})
-                feed["skipped"] = skipped
-                self.metrics.inc("selfcal_worker_skipped_batches_total")
+                refused.append((int(seq), batch.n, f"calibrator: {type(exc).__name__}: {exc}"[:300]))
                 continue
             events.extend(ev)
             samples += n
-        return events, samples, cal
+            fed.append(int(seq))
+        return events, samples, cal, fed, refused
 
     def _versions(self, cal: Calibrator, events: list[dict[str, Any]], feed: dict[str, Any]) -> list[NewVersion]:
         published = [ev for ev in events if ev.get("published")]

@@ -24,6 +24,7 @@ OPERATIONS = [
     ("POST", "/devices/{device_id}/calibration/rollback"),
     ("GET", "/devices"),
     ("GET", "/healthz"),
+    ("GET", "/readyz"),
     ("GET", "/metrics"),
 ]
 

@@ -1,0 +1,330 @@
+"""Regression tests of the service-hardening issue, each against a real uvicorn server
+(``selfcal serve`` in a subprocess, loopback only, the fake calibrator that checksums
+every sample it is fed). Each test reproduces a defect that the service had."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import os
+import random
+import shutil
+import subprocess
+import time
+import zlib
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from service_helpers import ServerProcess, batch_json, t_ms_sum
+
+from selfcal_service.schemas import BINARY_MEDIA_TYPE, SampleBatchIn
+
+
+def server(tmp_path: Path, db: Path | None = None, **env) -> ServerProcess:
+    srv = ServerProcess(db or tmp_path / "selfcal.db", tmp_path, calibrator="service_fakes:FakeCalibrator",
+                        env={f"SELFCAL_{k.upper()}": str(v) for k, v in env.items()})
+    srv.start()
+    return srv
+
+
+def fed_checksum(srv: ServerProcess, device: str, timeout_s: float = 30.0) -> tuple[int, int]:
+    """(samples fed, t_ms checksum) from the fake calibrator's last refit record."""
+    with srv.client("read") as c:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            body = c.get(f"/devices/{device}/calibration").json()
+            lr = body.get("last_refit") or {}
+            if time.monotonic() > deadline or lr:
+                return int(lr.get("n_samples", body["samples_processed"])), int(lr.get("t_ms_sum", -1))
+            time.sleep(0.05)
+
+
+def wait_settled(srv: ServerProcess, device: str, expect_batches: int, timeout_s: float = 30.0) -> dict:
+    """Poll until every stored batch of the device is fed or rejected."""
+    with srv.client("read") as c:
+        deadline = time.monotonic() + timeout_s
+        body = {}
+        while time.monotonic() < deadline:
+            r = c.get(f"/devices/{device}/calibration")
+            if r.status_code == 200:
+                body = r.json()
+                done = body["samples_processed"] // 20 + body["rejected_batches"]
+                if body["batches_stored"] == expect_batches and done == expect_batches:
+                    return body
+            time.sleep(0.05)
+    raise AssertionError(f"{device} not settled: {body}")
+
+
+@pytest.fixture()
+def srv(tmp_path):
+    s = server(tmp_path, reorder_window_s=1.0)
+    yield s
+    s.stop()
+
+
+# ------------------------------------------------------------------------ 1. huge seq
+def test_huge_seq_is_refused_and_cannot_strand_later_batches(srv):
+    with srv.client() as c:
+        assert c.post("/devices/d1/samples", json=batch_json(0)).status_code == 200
+        r = c.post("/devices/d1/samples", json=batch_json(2**63 - 1, t0_s=100.0))
+        assert r.status_code == 422 and r.json()["field"] == "seq"
+        r = c.post("/devices/d1/samples", json=batch_json(2**40, t0_s=100.0))  # in range, but a jump
+        assert r.status_code == 422 and "above the highest stored seq" in r.json()["message"]
+        for seq in (1, 2):
+            assert c.post("/devices/d1/samples", json=batch_json(seq)).status_code == 200
+    body = wait_settled(srv, "d1", 3)
+    assert body["processed_seq"] == 2 and body["samples_processed"] == 60
+
+
+def test_bit_flipped_binary_batch_is_refused_with_crc(srv):
+    rng = random.Random(3)
+    batch = SampleBatchIn.model_validate(batch_json(0)).to_batch()
+    good = batch.to_bytes(crc=True)
+    refused = 0
+    with srv.client() as c:
+        for _ in range(20):
+            buf = bytearray(good)
+            bit = rng.randrange(len(buf) * 8)
+            buf[bit // 8] ^= 1 << (bit % 8)
+            r = c.post("/devices/d2/samples", content=bytes(buf), headers={"Content-Type": BINARY_MEDIA_TYPE})
+            refused += r.status_code == 422
+            assert r.status_code in (422,), r.text
+        r = c.post("/devices/d2/samples", content=good, headers={"Content-Type": BINARY_MEDIA_TYPE})
+        assert r.status_code == 200
+    assert refused == 20
+    # version 1 (no checksum) is still accepted
+    with srv.client() as c:
+        v1 = SampleBatchIn.model_validate(batch_json(1)).to_batch().to_bytes()
+        assert c.post("/devices/d2/samples", content=v1, headers={"Content-Type": BINARY_MEDIA_TYPE}).status_code == 200
+    assert zlib.crc32(good[:-4]).to_bytes(4, "little") == good[-4:]
+
+
+# ------------------------------------------------------------------ 2. out of order
+def test_out_of_order_batches_are_all_fed_in_seq_order(srv):
+    bodies = [batch_json(s) for s in range(4)]
+    with srv.client() as c:
+        for seq in (0, 2, 1, 3):
+            assert c.post("/devices/d3/samples", json=bodies[seq]).json()["duplicate"] is False
+            time.sleep(0.7)
+    body = wait_settled(srv, "d3", 4)
+    assert body["samples_processed"] == 80 and body["rejected_batches"] == 0
+    n, checksum = fed_checksum(srv, "d3")
+    assert (n, checksum) == (80, sum(t_ms_sum(b) for b in bodies))
+
+
+def test_concurrent_in_flight_batches_are_all_fed(srv):
+    """4 in flight per device, 2 devices, 60 batches each, sent in random order within
+    windows of 4: every acknowledged sample is fed exactly once."""
+    rng = random.Random(5)
+    order = []
+    for lo in range(0, 60, 4):
+        chunk = list(range(lo, lo + 4))
+        rng.shuffle(chunk)
+        order += chunk
+    bodies = {s: batch_json(s) for s in range(60)}
+
+    def send(dev_seq):
+        dev, seq = dev_seq
+        with httpx.Client(base_url=srv.url, headers={"Authorization": "Bearer ingest-key-0001"}, timeout=30) as c:
+            return c.post(f"/devices/{dev}/samples", json=bodies[seq]).status_code
+
+    with cf.ThreadPoolExecutor(8) as pool:
+        codes = list(pool.map(send, [(d, s) for s in order for d in ("c1", "c2")]))
+    assert codes == [200] * 120
+    for dev in ("c1", "c2"):
+        body = wait_settled(srv, dev, 60)
+        assert body["samples_processed"] == 1200 and body["rejected_batches"] == 0
+        assert fed_checksum(srv, dev) == (1200, sum(t_ms_sum(b) for b in bodies.values()))
+
+
+def test_a_batch_later_than_the_reorder_window_is_rejected_with_its_reason(srv):
+    with srv.client() as c:
+        for seq in (0, 2):
+            assert c.post("/devices/d4/samples", json=batch_json(seq)).status_code == 200
+        time.sleep(2.0)  # window 1 s: seq 2 is fed without 1
+        assert c.post("/devices/d4/samples", json=batch_json(1)).status_code == 200
+    body = wait_settled(srv, "d4", 3)
+    assert body["samples_processed"] == 40
+    assert body["rejected_batches"] == 1 and body["rejected_samples"] == 20
+    assert body["last_rejection"]["seq"] == 1 and body["last_rejection"]["reason"].startswith("late")
+    with srv.client("read") as c:
+        text = c.get("/metrics").text
+    assert 'selfcal_rejected_samples_total{reason="late"} 20' in text
+
+
+# ------------------------------------------------------------------ 3. admin writes
+@pytest.mark.parametrize("matrix,offset,field", [
+    ([[0, 0, 0], [0, 0, 0], [0, 0, 0]], [0, 0, 0], "matrix"),
+    ([[1, 1, 1], [1, 1, 1], [1, 1, 1]], [0, 0, 0], "matrix"),
+    ([[1000, 0, 0], [0, 1000, 0], [0, 0, 1000]], [0, 0, 0], "matrix"),
+    ([[1, 0, 0], [0, 1, 0], [0, 0, 1]], [15, 0, 0], "matrix"),
+    ([[-1, 0, 0], [0, 1, 0], [0, 0, 1]], [0, 0, 0], "matrix"),
+])
+def test_implausible_admin_put_changes_nothing(srv, matrix, offset, field):
+    with srv.client() as c:
+        assert c.post("/devices/d5/samples", json=batch_json(0)).status_code == 200
+        srv.wait_processed("d5", 0)
+        before = c.get("/devices/d5/calibration/history").json()
+        r = c.put("/devices/d5/calibration", json={"matrix": matrix, "offset": offset})
+        assert r.status_code == 422, r.text
+        assert r.json()["field"] == field
+        assert c.get("/devices/d5/calibration/history").json() == before
+        assert c.get("/devices/d5/calibration").status_code == 200
+        good = c.put("/devices/d5/calibration", json={"matrix": np.eye(3).tolist(), "offset": [0.01, 0, 0]})
+        assert good.status_code == 200
+        assert c.get("/devices/d5/calibration").status_code == 200
+
+
+# ------------------------------------------------------------------ 4. same seq, other data
+def test_same_seq_other_content_is_a_409_and_the_first_data_stay(srv):
+    first = batch_json(0)
+    other = batch_json(0, rng=np.random.default_rng(99))
+    with srv.client() as c:
+        assert c.post("/devices/d6/samples", json=first).status_code == 200
+        r = c.post("/devices/d6/samples", json=other)
+        assert r.status_code == 409 and r.json()["error"] == "conflict" and r.json()["field"] == "seq"
+        again = c.post("/devices/d6/samples", json=first)  # an identical resend stays a duplicate
+        assert again.status_code == 200 and again.json()["duplicate"] is True
+        binary = SampleBatchIn.model_validate(first).to_batch().to_bytes(crc=True)
+        same = c.post("/devices/d6/samples", content=binary, headers={"Content-Type": BINARY_MEDIA_TYPE})
+        assert same.status_code == 200 and same.json()["duplicate"] is True  # same content, other encoding
+    wait_settled(srv, "d6", 1)
+    assert fed_checksum(srv, "d6") == (20, t_ms_sum(first))
+
+
+# ------------------------------------------------------------------ 6. smaller ones
+def test_unknown_device_is_not_found_and_405_has_allow(srv):
+    with srv.client() as c:
+        r = c.get("/devices/nobody/calibration")
+        assert r.status_code == 404 and r.json()["error"] == "not_found"
+        r = c.delete("/devices/nobody/calibration")
+        assert r.status_code == 405
+        assert set(r.headers["allow"].split(", ")) >= {"GET", "PUT"}
+
+
+def test_readyz_ok_when_healthy(srv):
+    r = httpx.get(srv.url + "/readyz", timeout=10)
+    assert r.status_code == 200 and r.json()["ready"] is True and r.json()["storage_writable"] is True
+
+
+# ------------------------------------------------------------------ 5. storage faults
+def test_deleted_database_file_is_not_acknowledged_into(tmp_path):
+    s = server(tmp_path)
+    try:
+        with s.client() as c:
+            assert c.post("/devices/e1/samples", json=batch_json(0)).status_code == 200
+            os.unlink(s.db)
+            r = c.post("/devices/e1/samples", json=batch_json(1))
+            assert r.status_code == 503 and r.json()["error"] == "storage_unavailable"
+            assert r.headers["retry-after"]
+        ready = httpx.get(s.url + "/readyz", timeout=10)
+        assert ready.status_code == 503 and "deleted" in ready.json()["storage_problem"]
+    finally:
+        s.kill9()
+
+
+def _can_mount() -> bool:
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        return False
+    probe = Path("/tmp") / f"selfcal-mount-probe-{os.getpid()}"
+    probe.mkdir(exist_ok=True)
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(probe)], capture_output=True).returncode == 0
+    if ok:
+        subprocess.run(["umount", str(probe)], check=False)
+    probe.rmdir()
+    return ok
+
+
+needs_mount = pytest.mark.skipif(not _can_mount(), reason="needs root and mount (a small tmpfs for the faults)")
+
+
+@pytest.fixture()
+def tmpfs(tmp_path):
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(mnt)], check=True)
+    yield mnt
+    subprocess.run(["mount", "-o", "remount,rw", str(mnt)], check=False)
+    subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def _post_until(c: httpx.Client, device: str, seq: int, want: int, timeout_s: float = 20.0) -> httpx.Response:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        r = c.post(f"/devices/{device}/samples", json=batch_json(seq))
+        if r.status_code == want or time.monotonic() > deadline:
+            return r
+        time.sleep(0.2)
+
+
+def _chattr(paths, flag: str) -> bool:
+    if shutil.which("chattr") is None:
+        return False
+    return all(subprocess.run(["chattr", flag, str(p)], capture_output=True).returncode == 0
+               for p in paths if Path(p).exists())
+
+
+def _can_chattr() -> bool:
+    if os.geteuid() != 0:
+        return False
+    probe = Path(os.environ.get("TMPDIR", "/tmp")) / f"selfcal-chattr-probe-{os.getpid()}"
+    probe.write_text("x")
+    ok = _chattr([probe], "+i")
+    _chattr([probe], "-i")
+    probe.unlink()
+    return ok
+
+
+@pytest.mark.skipif(not _can_chattr(), reason="needs root and chattr on a filesystem with the immutable flag")
+def test_read_only_database_then_recovery_without_restart(tmp_path):
+    s = server(tmp_path)
+    files = [s.db, Path(str(s.db) + "-wal")]  # not -shm: it is mmap-ed (SIGBUS)
+    try:
+        with s.client() as c:
+            assert c.post("/devices/r1/samples", json=batch_json(0)).status_code == 200
+            assert _chattr(files, "+i")
+            r = c.post("/devices/r1/samples", json=batch_json(1))
+            assert r.status_code == 503, r.text
+            ready = httpx.get(s.url + "/readyz", timeout=10)
+            assert ready.status_code == 503 and ready.json()["storage_writable"] is False
+            assert _chattr(files, "-i")
+            assert _post_until(c, "r1", 1, 200).status_code == 200
+            assert httpx.get(s.url + "/readyz", timeout=10).status_code == 200
+        body = wait_settled(s, "r1", 2)
+        assert body["samples_processed"] == 40
+    finally:
+        _chattr(files, "-i")
+        s.kill9()
+
+
+@needs_mount
+def test_full_disk_then_recovery_without_restart(tmp_path, tmpfs):
+    s = server(tmp_path, db=tmpfs / "selfcal.db")
+    filler = tmpfs / "filler"
+    try:
+        with s.client() as c:
+            assert c.post("/devices/f1/samples", json=batch_json(0)).status_code == 200
+            with open(filler, "wb") as fh:  # fill the tmpfs
+                try:
+                    while True:
+                        fh.write(b"\0" * 65536)
+                        fh.flush()
+                except OSError:
+                    pass
+            codes = [c.post("/devices/f1/samples", json=batch_json(seq)).status_code for seq in range(1, 40)]
+            assert 503 in codes and 500 not in codes, codes
+            acked = [seq for seq, code in zip(range(1, 40), codes) if code == 200]
+            assert httpx.get(s.url + "/readyz", timeout=10).status_code == 503
+            filler.unlink()
+            nxt = 40
+            assert _post_until(c, "f1", nxt, 200).status_code == 200
+            assert httpx.get(s.url + "/readyz", timeout=10).status_code == 200
+            for seq in range(1, 40):  # the gateway resends what was refused
+                if seq not in acked:
+                    assert c.post("/devices/f1/samples", json=batch_json(seq)).status_code == 200
+        body = wait_settled(s, "f1", 41)
+        assert body["samples_processed"] + 20 * body["rejected_batches"] == 41 * 20
+    finally:
+        s.kill9()
