@@ -42,7 +42,7 @@ Python loop runs only to locate the exact cell of an error.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 
 import itertools
 import os
@@ -914,6 +914,11 @@ def write_recording(path: str | os.PathLike, rec: Recording) -> None:
         non-finite acceleration/sd, an ``extra`` name that clashes with a contract
         column or holds a comma/newline, a meta key or value that is not one line.
     """
+    write_recording_blocks(path, [rec])
+
+
+def _block_columns(rec: Recording) -> list[tuple[str, np.ndarray]]:
+    """Checked ``(name, values)`` columns of one block, in file order."""
     _check_fields(rec)
     where = rec.path or "Recording"
     for name in ("t_s", "acc", "sd"):
@@ -922,9 +927,6 @@ def write_recording(path: str | os.PathLike, rec: Recording) -> None:
             raise InputError(f"{where}: {name} has NaN/inf values; the file format cannot hold them")
     if np.any(np.diff(rec.t_s) < 0):
         raise InputError(f"{where}: t_s decreases; the file format requires non-decreasing t_s")
-    if len(rec) == 0:
-        raise InputError(f"{where}: no rows to write (the file format has no empty tables)")
-
     columns: list[tuple[str, np.ndarray]] = [("t_s", rec.t_s)]
     columns += [(f"a{a}_{rec.unit}", rec.acc[:, i]) for i, a in enumerate(_AXES)]
     if rec.kind == "poses":
@@ -946,7 +948,11 @@ def write_recording(path: str | os.PathLike, rec: Recording) -> None:
         if value.dtype.kind not in "fiub" and any("," in s or "\n" in s for s in map(str, value.tolist())):
             raise InputError(f"{where}: extra column {name!r} has a value with ',' or a newline")
         columns.append((name, value))
+    return columns
 
+
+def _header_lines(rec: Recording, names: list[str]) -> list[str]:
+    where = rec.path or "Recording"
     out = [MAGIC_LINE, f"# kind={rec.kind}"]
     for key, value in rec.meta.items():
         if key in _DERIVED_META:
@@ -957,17 +963,50 @@ def write_recording(path: str | os.PathLike, rec: Recording) -> None:
         if "\n" in value or "\r" in value:
             raise InputError(f"{where}: meta[{key!r}] spans several lines; meta values must be one line")
         out.append(f"# {key}={value}")
-    out.append(",".join(name for name, _ in columns))
-    texts = [_format_column(np.asarray(value)) for _, value in columns]
-    out.extend(",".join(row) for row in zip(*texts))  # writer is not a hot path
-    out.append("")
+    out.append(",".join(names))
+    return out
 
+
+def write_recording_blocks(path: str | os.PathLike, blocks: Iterable[Recording]) -> int:
+    """Write a recording given in blocks, in bounded memory (atomic replace of `path`).
+
+    The first block gives the header (kind, unit, columns, meta); every block must have
+    the same columns, and ``t_s`` must not decrease within or across blocks. The same
+    checks and errors as :func:`write_recording`; on any error `path` is untouched.
+
+    Returns
+    -------
+    int
+        Rows written.
+    """
     target = Path(path)
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+    rows = 0
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
-            fh.write("\n".join(out))
+            names: list[str] | None = None
+            last_t = -np.inf
+            for rec in blocks:
+                if len(rec) == 0:
+                    continue
+                columns = _block_columns(rec)
+                block_names = [name for name, _ in columns]
+                if names is None:
+                    names = block_names
+                    fh.write("\n".join(_header_lines(rec, names)) + "\n")
+                elif block_names != names:
+                    raise InputError(f"{rec.path or 'Recording'}: block columns {block_names} differ from {names}")
+                if rec.t_s[0] < last_t:
+                    raise InputError(f"{rec.path or 'Recording'}: t_s decreases across blocks; the file "
+                                     "format requires non-decreasing t_s")
+                last_t = float(rec.t_s[-1])
+                texts = [_format_column(np.asarray(value)) for _, value in columns]
+                fh.write("\n".join(",".join(row) for row in zip(*texts)) + "\n")
+                rows += len(rec)
+            if names is None:
+                raise InputError(f"{target}: no rows to write (the file format has no empty tables)")
         os.replace(tmp, target)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return rows
