@@ -10,17 +10,14 @@ was published from a refused request."""
 from __future__ import annotations
 
 import concurrent.futures as cf
-import os
 import random
-import shutil
-import subprocess
 import time
-from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 
+from service_faults import can_chattr, can_mount, chattr, database_files, fill_disk, flip_bit, mount_tmpfs, unmount
 from service_helpers import ServerProcess, batch_json, t_ms_sum
 
 from selfcal_service.schemas import BINARY_MEDIA_TYPE, SampleBatchIn
@@ -28,27 +25,6 @@ from selfcal_service.schemas import BINARY_MEDIA_TYPE, SampleBatchIn
 DEVICES = ("chaos-a", "chaos-b", "chaos-c")
 N_BATCHES = 90  # per device, 20 samples each
 KILLS = 5
-
-
-def _root_tools() -> tuple[bool, bool]:
-    """(chattr works here, tmpfs mount works here)."""
-    if os.geteuid() != 0:
-        return False, False
-    probe = Path("/tmp") / f"selfcal-chaos-probe-{os.getpid()}"
-    probe.write_text("x")
-    chattr = shutil.which("chattr") is not None and subprocess.run(
-        ["chattr", "+i", str(probe)], capture_output=True).returncode == 0
-    if chattr:
-        subprocess.run(["chattr", "-i", str(probe)], check=False)
-    probe.unlink()
-    mnt = Path("/tmp") / f"selfcal-chaos-mnt-{os.getpid()}"
-    mnt.mkdir()
-    mount = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)],
-                           capture_output=True).returncode == 0
-    if mount:
-        subprocess.run(["umount", str(mnt)], check=False)
-    mnt.rmdir()
-    return chattr, mount
 
 
 class Sender:
@@ -84,22 +60,15 @@ class Sender:
             list(pool.map(lambda k: self.post(k, rng.random() < 0.5), keys))
 
 
-def _flip(raw: bytes, rng: random.Random) -> bytes:
-    buf = bytearray(raw)
-    bit = rng.randrange(len(buf) * 8)
-    buf[bit // 8] ^= 1 << (bit % 8)
-    return bytes(buf)
-
-
 @pytest.mark.slow
 def test_chaos_every_acknowledged_sample_is_fed_once_or_rejected_with_a_reason(tmp_path):
-    can_chattr, can_mount = _root_tools()
+    read_only_possible = can_chattr()
     rng = random.Random(2026)
     mnt = None
-    if can_mount:
+    if can_mount():
         mnt = tmp_path / "mnt"
         mnt.mkdir()
-        subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(mnt)], check=True)
+        assert mount_tmpfs(mnt, "8m")
     db = (mnt or tmp_path) / "selfcal.db"
     srv = ServerProcess(db, tmp_path, calibrator="service_fakes:FakeCalibrator",
                         env={"SELFCAL_REORDER_WINDOW_S": "0.5"})
@@ -117,23 +86,13 @@ def test_chaos_every_acknowledged_sample_is_fed_once_or_rejected_with_a_reason(t
         kill_at = sorted(rng.sample(range(1, len(order) // 24), KILLS))
         rounds = [order[i:i + 24] for i in range(0, len(order), 24)]
         for i, keys in enumerate(rounds):
-            if i == 3 and can_chattr:  # read-only database for one round
-                files = [db, Path(str(db) + "-wal")]
-                for f in files:
-                    subprocess.run(["chattr", "+i", str(f)], check=False)
+            if i == 3 and read_only_possible:  # read-only database for one round
+                chattr(database_files(db), "+i")
                 sender.send_round(keys, rng)
-                for f in files:
-                    subprocess.run(["chattr", "-i", str(f)], check=False)
+                chattr(database_files(db), "-i")
                 faults.append("read-only")
             elif i == 5 and mnt is not None:  # full disk for one round
-                filler = mnt / "filler"
-                with open(filler, "wb") as fh:
-                    try:
-                        while True:
-                            fh.write(b"\0" * 65536)
-                            fh.flush()
-                    except OSError:
-                        pass
+                filler = fill_disk(mnt)
                 sender.send_round(keys, rng)
                 filler.unlink()
                 faults.append("disk-full")
@@ -145,7 +104,7 @@ def test_chaos_every_acknowledged_sample_is_fed_once_or_rejected_with_a_reason(t
                         history_before_bad_puts[dev] = c.get(f"/devices/{dev}/calibration/history").json()["versions"]
                         raw = SampleBatchIn.model_validate(sender.bodies[(dev, 50)]).to_batch().to_bytes(crc=True)
                         for _ in range(5):
-                            r = c.post(f"/devices/{dev}/samples", content=_flip(raw, rng),
+                            r = c.post(f"/devices/{dev}/samples", content=flip_bit(raw, rng),
                                        headers={"Content-Type": BINARY_MEDIA_TYPE})
                             assert r.status_code == 422, r.text
                         bad = c.put(f"/devices/{dev}/calibration",
@@ -197,4 +156,4 @@ def test_chaos_every_acknowledged_sample_is_fed_once_or_rejected_with_a_reason(t
     finally:
         srv.kill9()
         if mnt is not None:
-            subprocess.run(["umount", "-l", str(mnt)], check=False)
+            unmount(mnt)

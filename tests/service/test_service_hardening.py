@@ -7,8 +7,6 @@ from __future__ import annotations
 import concurrent.futures as cf
 import os
 import random
-import shutil
-import subprocess
 import time
 import zlib
 from pathlib import Path
@@ -17,6 +15,7 @@ import httpx
 import numpy as np
 import pytest
 
+from service_faults import can_chattr, can_mount, chattr, database_files, fill_disk, flip_bit, mount_tmpfs, unmount
 from service_helpers import ServerProcess, batch_json, t_ms_sum
 
 from selfcal_service.schemas import BINARY_MEDIA_TYPE, SampleBatchIn
@@ -85,10 +84,7 @@ def test_bit_flipped_binary_batch_is_refused_with_crc(srv):
     refused = 0
     with srv.client() as c:
         for _ in range(20):
-            buf = bytearray(good)
-            bit = rng.randrange(len(buf) * 8)
-            buf[bit // 8] ^= 1 << (bit % 8)
-            r = c.post("/devices/d2/samples", content=bytes(buf), headers={"Content-Type": BINARY_MEDIA_TYPE})
+            r = c.post("/devices/d2/samples", content=flip_bit(good, rng), headers={"Content-Type": BINARY_MEDIA_TYPE})
             refused += r.status_code == 422
             assert r.status_code in (422,), r.text
         r = c.post("/devices/d2/samples", content=good, headers={"Content-Type": BINARY_MEDIA_TYPE})
@@ -225,29 +221,16 @@ def test_deleted_database_file_is_not_acknowledged_into(tmp_path):
         s.kill9()
 
 
-def _can_mount() -> bool:
-    if os.geteuid() != 0 or shutil.which("mount") is None:
-        return False
-    probe = Path("/tmp") / f"selfcal-mount-probe-{os.getpid()}"
-    probe.mkdir(exist_ok=True)
-    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(probe)], capture_output=True).returncode == 0
-    if ok:
-        subprocess.run(["umount", str(probe)], check=False)
-    probe.rmdir()
-    return ok
-
-
-needs_mount = pytest.mark.skipif(not _can_mount(), reason="needs root and mount (a small tmpfs for the faults)")
+needs_mount = pytest.mark.skipif(not can_mount(), reason="needs root and mount (a small tmpfs for the faults)")
 
 
 @pytest.fixture()
 def tmpfs(tmp_path):
     mnt = tmp_path / "mnt"
     mnt.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4m", "tmpfs", str(mnt)], check=True)
+    assert mount_tmpfs(mnt, "4m")
     yield mnt
-    subprocess.run(["mount", "-o", "remount,rw", str(mnt)], check=False)
-    subprocess.run(["umount", "-l", str(mnt)], check=False)
+    unmount(mnt)
 
 
 def _post_until(c: httpx.Client, device: str, seq: int, want: int, timeout_s: float = 20.0) -> httpx.Response:
@@ -259,60 +242,35 @@ def _post_until(c: httpx.Client, device: str, seq: int, want: int, timeout_s: fl
         time.sleep(0.2)
 
 
-def _chattr(paths, flag: str) -> bool:
-    if shutil.which("chattr") is None:
-        return False
-    return all(subprocess.run(["chattr", flag, str(p)], capture_output=True).returncode == 0
-               for p in paths if Path(p).exists())
-
-
-def _can_chattr() -> bool:
-    if os.geteuid() != 0:
-        return False
-    probe = Path(os.environ.get("TMPDIR", "/tmp")) / f"selfcal-chattr-probe-{os.getpid()}"
-    probe.write_text("x")
-    ok = _chattr([probe], "+i")
-    _chattr([probe], "-i")
-    probe.unlink()
-    return ok
-
-
-@pytest.mark.skipif(not _can_chattr(), reason="needs root and chattr on a filesystem with the immutable flag")
+@pytest.mark.skipif(not can_chattr(), reason="needs root and chattr on a filesystem with the immutable flag")
 def test_read_only_database_then_recovery_without_restart(tmp_path):
     s = server(tmp_path)
-    files = [s.db, Path(str(s.db) + "-wal")]  # not -shm: it is mmap-ed (SIGBUS)
+    files = database_files(s.db)
     try:
         with s.client() as c:
             assert c.post("/devices/r1/samples", json=batch_json(0)).status_code == 200
-            assert _chattr(files, "+i")
+            assert chattr(files, "+i")
             r = c.post("/devices/r1/samples", json=batch_json(1))
             assert r.status_code == 503, r.text
             ready = httpx.get(s.url + "/readyz", timeout=10)
             assert ready.status_code == 503 and ready.json()["storage_writable"] is False
-            assert _chattr(files, "-i")
+            assert chattr(files, "-i")
             assert _post_until(c, "r1", 1, 200).status_code == 200
             assert httpx.get(s.url + "/readyz", timeout=10).status_code == 200
         body = wait_settled(s, "r1", 2)
         assert body["samples_processed"] == 40
     finally:
-        _chattr(files, "-i")
+        chattr(files, "-i")
         s.kill9()
 
 
 @needs_mount
 def test_full_disk_then_recovery_without_restart(tmp_path, tmpfs):
     s = server(tmp_path, db=tmpfs / "selfcal.db")
-    filler = tmpfs / "filler"
     try:
         with s.client() as c:
             assert c.post("/devices/f1/samples", json=batch_json(0)).status_code == 200
-            with open(filler, "wb") as fh:  # fill the tmpfs
-                try:
-                    while True:
-                        fh.write(b"\0" * 65536)
-                        fh.flush()
-                except OSError:
-                    pass
+            filler = fill_disk(tmpfs)
             codes = [c.post("/devices/f1/samples", json=batch_json(seq)).status_code for seq in range(1, 40)]
             assert 503 in codes and 500 not in codes, codes
             acked = [seq for seq, code in zip(range(1, 40), codes) if code == 200]
