@@ -481,8 +481,8 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray) -> n
             s1_max = np.sqrt(w * p2)  # |window sum of y| (Cauchy-Schwarz)
             e1 = 2 * (length + 1) * u * np.sqrt(length * p2) + u * s1_max
             e2 = 2 * (length + 2) * u * p2 + u * p2
-            e_ss = (e2 + (2 * s1_max * e1 + e1 * e1) * inv_w + 3 * u * p2
-                    + 3 * u * p2 + 4 * u * np.abs(seg[:, 0]) * np.sqrt(p2) * w * u)
+            e_ss = (e2 + (2 * s1_max * e1 + e1 * e1) * inv_w + 6 * u * p2
+                    + 4 * u * np.abs(seg[:, 0]) * np.sqrt(p2) * w * u)
             margin = 2 * e_ss + 1e-300
             in_hi = (hi_ss / (1 + r) - margin)[:, None]
             out_hi = (hi_ss / (1 - r) + margin)[:, None]
@@ -498,7 +498,7 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray) -> n
         unsure = np.flatnonzero(maybe)
         if unsure.size:
             _, sd = _exact_window_stats(x, w, unsure + lo)
-            ok[lo + unsure] = ((sd <= hi_sd) & (sd >= np.where(lo_sd > 0, lo_sd, -np.inf))).all(axis=1)
+            ok[lo + unsure] = ((sd <= hi_sd) & (sd >= lo_sd)).all(axis=1)  # sd >= 0 >= lo_sd: no bound
     return ok
 
 
@@ -546,7 +546,7 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
         if m <= _SMALL_WINDOWS:  # few new windows (small chunks): reduce each one directly
             cand = np.flatnonzero(ok)
             _, sd = _exact_window_stats(x0, w, cand)
-            ok[cand] = ((sd <= hi_sd) & (sd >= np.where(lo_sd > 0, lo_sd, -np.inf))).all(axis=1)
+            ok[cand] = ((sd <= hi_sd) & (sd >= lo_sd)).all(axis=1)
         elif ok.any():
             ok &= _sd_within(x0, w, lo_sd, hi_sd)
         if to_cal is not None:
