@@ -29,6 +29,10 @@ SUMMARY_COLUMNS = (
 )
 
 
+def _device_name(meta: dict) -> str | None:
+    return meta.get("device") or meta.get("sensor") or meta.get("format")
+
+
 def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, columns: list[str] | None = None) -> dict:
     """Calibrate one file; never raises: an error becomes the row's ``error``."""
     from selfcal.config import load_config
@@ -40,9 +44,8 @@ def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, 
     row: dict = {k: None for k in SUMMARY_COLUMNS}
     row.update(file=path, model=model)
     try:
-        head = next(iter_recording(path, block_rows=1, columns=columns))  # preamble + first row: metadata
-        row["device"] = head.meta.get("device") or head.meta.get("sensor") or head.meta.get("format")
         run = calibrate_path(path, model, load_config(config_path), columns=columns)  # streamed: bounded memory
+        row["device"] = _device_name(run.meta)
         store = run.calibrator.store
         summ = store.summary()
         if summ["t_span_s"]:
@@ -78,6 +81,11 @@ def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, 
     except Exception as exc:  # noqa: BLE001 - one bad file never stops the run; the row says why
         row["status"] = "error"
         row["error"] = f"{type(exc).__name__}: {exc}"
+    if row["status"] == "error":  # the device name, if the file's preamble can be read at all
+        try:
+            row["device"] = _device_name(next(iter_recording(path, block_rows=1, columns=columns)).meta)
+        except Exception:  # noqa: BLE001 - the row already says what went wrong
+            pass
     row["seconds"] = round(time.perf_counter() - t0, 3)
     return row
 

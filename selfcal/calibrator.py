@@ -347,7 +347,7 @@ class OnlineCalibrator:
         decision = self._guard(fit, data, usable, prior)
         if not decision.publish:
             return self._refuse(t_now, decision.reason, decision.message, fit, decision)
-        cal = self._describe(fit, prior, t_now, n_cells, decision)
+        cal = self._describe(fit, t_now, n_cells, decision)
         hold = self._hold(fit, cal, t_now, final)
         if hold:
             return self._refuse(t_now, "no_significant_change", hold, fit, decision)
@@ -394,25 +394,25 @@ class OnlineCalibrator:
                 new, cur)
         return GuardDecision(True, None, f"held-out RMS {new:.3f} mg vs {label} {cur:.3f} mg on {where}", new, cur)
 
-    def _determined(self, cov_u: np.ndarray, prior: Prior) -> np.ndarray:
+    def _determined(self, cov_u: np.ndarray) -> np.ndarray:
+        """Parameters whose sd is below ``determined_ratio`` of the datasheet's, (p,) bool."""
         ds = np.diag(datasheet_prior(self.model, self.fit_cfg).cov)
         return np.sqrt(np.diag(cov_u) / ds) < self.fit_cfg.determined_ratio
 
-    def _status_of(self, cov_u: np.ndarray, prior: Prior, predicted_mg: float, n_cells: int) -> str:
-        det = self._determined(cov_u, prior)
+    def _status_of(self, det: np.ndarray, predicted_mg: float, n_cells: int) -> str:
         n_base = 6 if self.model.base == "scale6" else 9
         ok = bool(det[:n_base].all()) and predicted_mg <= self.sched_cfg.calibrated_max_sphere_mg
         return "calibrated" if ok and n_cells >= self.sched_cfg.calibrated_min_poses else "provisional"
 
-    def _describe(self, fit: FitResult, prior: Prior, t_now: float, n_cells: int, decision: GuardDecision) -> dict:
+    def _describe(self, fit: FitResult, t_now: float, n_cells: int, decision: GuardDecision) -> dict:
         cal = fit.to_calibration(unit="g")
-        det = self._determined(fit.cov_u, prior)
+        det = self._determined(fit.cov_u)
         names = self.model.param_names
         cal["determined"] = [n for n, d in zip(names, det) if d]
         cal["undetermined"] = [n for n, d in zip(names, det) if not d]
         predicted = predicted_sphere_rms_mg(self.model, fit.theta_u, fit.cov_u, t_now)
         cal["predicted_sphere_rms_mg"] = predicted
-        cal["status"] = self._status_of(fit.cov_u, prior, predicted, n_cells)
+        cal["status"] = self._status_of(det, predicted, n_cells)
         cal["n_poses"] = n_cells
         cal["n_windows"] = int(self.store.window_counts().sum())
         cal["n_rejected"] = int(fit.extra.get("n_rejected", 0))
@@ -490,9 +490,8 @@ class OnlineCalibrator:
         if np.any(~np.isfinite(sd)) or np.any(sd <= 0):
             raise InputError("std: every standard deviation must be finite and > 0")
         cov = np.diag(sd**2)
-        prior = Prior(theta, cov)
         matrix, offset = self.model.linear(theta)
-        det = self._determined(cov, prior)
+        det = self._determined(cov)
         names = self.model.param_names
         predicted = predicted_sphere_rms_mg(self.model, theta, cov, t_s)
         cal = {
@@ -504,7 +503,7 @@ class OnlineCalibrator:
             "matrix": matrix.tolist(), "offset": offset.tolist(), "refit_mode": "seeded", "t_s": t_s,
             "temp_ref_c": self.model.temp_ref_c, "t_ref_s": self.model.t_ref_s,
             "predicted_sphere_rms_mg": predicted,
-            "status": self._status_of(cov, prior, predicted, self.sched_cfg.calibrated_min_poses),
+            "status": self._status_of(det, predicted, self.sched_cfg.calibrated_min_poses),
         }
         version = (self.current["version"] if self.current else 0) + 1
         self.seeded_prior = {"mean": theta.tolist(), "cov": cov.tolist()}

@@ -609,8 +609,8 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
 
     Notes
     -----
-    A window's statistics are those of its own samples: per channel, the samples are
-    copied to contiguous memory and reduced along it (pieces of one length together).
+    A window's statistics are those of its own samples (:func:`_exact_window_stats`,
+    pieces of one length together).
     """
     keep = hi - lo >= 2
     keep[keep] = t[hi[keep] - 1] - t[lo[keep]] >= cfg.min_duration_s
@@ -629,13 +629,8 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
         block = max(1, _BLOCK_VALUES // (length * x.shape[0]))
         for b0 in range(0, rows.size, block):
             r = rows[b0 : b0 + block]
-            ix = lo[r, None] + np.arange(length)  # (b, length)
-            a = np.take(x[:3], ix, axis=1)  # (3, b, length), C-contiguous copy
-            mu = a.mean(axis=-1)
-            dev = a - mu[..., None]
-            mean[r] = mu.T
-            sd[r] = np.sqrt((dev * dev).sum(axis=-1) / (length - 1)).T
-            tt = x[-1][ix]  # (b, length)
+            mean[r], sd[r] = _exact_window_stats(x[:3], length, lo[r])
+            tt = x[-1][lo[r, None] + np.arange(length)]  # (b, length)
             fin = np.isfinite(tt)
             every = fin.all(axis=1)
             if every.any():
@@ -643,9 +638,7 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
             for j in np.flatnonzero(~every & fin.any(axis=1)).tolist():  # gaps in temp_c
                 temp_mean[r[j]] = float(np.ascontiguousarray(tt[j][fin[j]]).mean())
             if kp:
-                p = np.take(x[3 : 3 + kp], ix, axis=1)  # (kp, b, length), C-contiguous
-                pdev = p - p.mean(axis=-1)[..., None]
-                psd[r] = np.sqrt((pdev * pdev).sum(axis=-1) / (length - 1)).max(axis=0)
+                psd[r] = _exact_window_stats(x[3 : 3 + kp], length, lo[r])[1].max(axis=1)
     return StillWindows(
         mean_g=mean,
         sd_g=sd,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import copy
 import itertools
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -43,6 +43,7 @@ class CalibrationRun:
     events: list[dict]
     notes: list[str]
     unit: str = "g"
+    meta: dict = field(default_factory=dict)  # the recording's preamble (device, sensor, rate, ...)
 
 
 def _rough_counts_normalizer(acc: np.ndarray) -> Normalizer:
@@ -242,6 +243,7 @@ def calibrate_recording(
         events=events,
         notes=notes,
         unit=rec.unit,
+        meta=dict(rec.meta),
     )
 
 
@@ -287,7 +289,8 @@ def calibrate_path(
             parts = [first, *blocks]
             temp = None if first.temp_c is None else np.concatenate([b.temp_c for b in parts])
             whole = Recording(kind="samples", unit=first.unit, t_s=np.concatenate([b.t_s for b in parts]),
-                              acc=np.vstack([b.acc for b in parts]), temp_c=temp, path=str(path))
+                              acc=np.vstack([b.acc for b in parts]), temp_c=temp, path=str(path),
+                              meta=dict(first.meta))
             return calibrate_recording(whole, model, config, progress=False)
         return calibrate_recording(read_recording(path), model, config, progress=False)
     normalizer = guess_normalizer(first.unit)
@@ -305,7 +308,7 @@ def calibrate_path(
     return CalibrationRun(
         calibration=to_raw_calibration(cal, normalizer, first.unit), status=cal.status, last_refit=cal.last_refit,
         calibrator=cal, normalizer=normalizer, n_windows=int(cal.store.n_seen), events=events, notes=notes,
-        unit=first.unit,
+        unit=first.unit, meta=dict(first.meta),
     )
 
 

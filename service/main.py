@@ -45,6 +45,7 @@ from selfcal_service.schemas import (
     SampleBatchIn,
     VersionOut,
     batch_request_openapi,
+    canonical_binary,
     check_batch,
     decode_binary,
 )
@@ -433,12 +434,14 @@ def create_app(
         ctype = _content_type(request)
         if ctype == BINARY_MEDIA_TYPE:
             batch = decode_binary(body)
+            payload = canonical_binary(body)
         elif ctype == "application/json":
             try:
                 parsed = SampleBatchIn.model_validate_json(body)
             except ValidationError as exc:
                 raise RequestValidationError(exc.errors()) from None
             batch = parsed.to_batch()
+            payload = batch.to_bytes()
         else:
             raise FieldError("Content-Type", f"expected application/json or {BINARY_MEDIA_TYPE}", 415)
         check_batch(
@@ -446,8 +449,7 @@ def create_app(
             max_samples=settings.max_batch_samples,
             max_pressure_channels=settings.max_pressure_channels,
         )
-        payload = batch.to_bytes()  # canonical: the same samples give the same bytes either way
-        digest = hashlib.sha256(payload).digest()
+        digest = hashlib.sha256(payload).digest()  # canonical bytes: the same samples, the same digest
         try:
             result = await asyncio.wrap_future(store.submit_batch(
                 device_id, batch.seq, batch.n, payload, time.time(), digest, settings.max_seq_jump))
@@ -615,9 +617,7 @@ def create_app(
     async def readyz(request: Request) -> Response:
         store: Storage = request.app.state.store
         worker: RefitWorker = request.app.state.worker
-        problem = store.identity_problem() if hasattr(store, "identity_problem") else None
-        if problem is None:
-            problem = await run_in_threadpool(store.probe_write, 2.0)
+        problem = await run_in_threadpool(store.probe_write, 2.0)  # the writer checks the file's identity
         alive = worker.alive()
         try:
             backlog = await run_in_threadpool(store.backlog)

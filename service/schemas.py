@@ -144,6 +144,16 @@ def decode_binary(body: bytes) -> Batch:
     return Batch(int(seq), t_s, acc_g, temp_c, pressure)
 
 
+def canonical_binary(body: bytes) -> bytes:
+    """A decoded binary batch's stored form: the version-1 layout (``SCB1``, no CRC).
+
+    Equal to ``decode_binary(body).to_bytes()`` without decoding again.
+    """
+    if body[:4] == BINARY_MAGIC_CRC:
+        return BINARY_MAGIC + body[4:-4]
+    return body
+
+
 def _first_bad(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask)[0])
 

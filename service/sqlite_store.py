@@ -113,7 +113,7 @@ _DEVICE_COLS = (
     "calibrator_status, last_refit, feed_state, current_version, updated_at, "
     "rejected_batches, rejected_samples, last_rejection"
 )
-_N_DEVICE_COLS = 13
+_N_DEVICE_COLS = len(_DEVICE_COLS.split(","))
 
 _STOP = object()
 
@@ -255,7 +255,7 @@ class SQLiteStore(Storage):
         return self._queue.qsize()
 
     def _write_loop(self) -> None:
-        conn = self._connect()
+        conn = self._reconnect()  # None: connect again before the next group
         stop = False
         while not stop:
             item = self._queue.get()
@@ -283,13 +283,9 @@ class SQLiteStore(Storage):
                     conn.execute("SAVEPOINT op")
                     try:
                         value = fn(conn)
-                    except (sqlite3.OperationalError, sqlite3.DatabaseError) as exc:
-                        if not isinstance(exc, sqlite3.IntegrityError):
-                            raise  # read-only, full, I/O: the whole group fails below
-                        conn.execute("ROLLBACK TO op")
-                        conn.execute("RELEASE op")
-                        results.append((fut, False, exc))
                     except Exception as exc:
+                        if isinstance(exc, sqlite3.DatabaseError) and not isinstance(exc, sqlite3.IntegrityError):
+                            raise  # read-only, full, I/O: the whole group fails below
                         conn.execute("ROLLBACK TO op")  # one bad write must not sink the group
                         conn.execute("RELEASE op")
                         results.append((fut, False, exc))

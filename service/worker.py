@@ -293,8 +293,7 @@ class RefitWorker:
             progress = Progress(
                 device_id=device_id,
                 expected_processed_seq=rec.processed_seq,
-                processed_seq=max([*fed, *([rec.processed_seq] if rec.processed_seq is not None else [])])
-                if fed else rec.processed_seq,
+                processed_seq=max(fed, default=rec.processed_seq),  # fed seqs are all above it
                 samples_added=samples,
                 calibrator_state=cal.to_json(),
                 calibrator_status=str(cal.status),
@@ -315,7 +314,7 @@ class RefitWorker:
             for ev in events:
                 outcome = "published" if ev.get("published") else str(ev.get("reason") or "unknown")
                 self.metrics.inc("selfcal_refits_total", outcome=outcome)
-            return len(rows) >= self.max_batches and bool(take or late)
+            return len(rows) >= self.max_batches
 
     def _hold(self, device_id: str, delay_s: float) -> None:
         """Look at a device again after ``delay_s`` (batches held for the reorder window)."""

@@ -106,6 +106,23 @@ class ServerProcess:
     def client(self, scope: str = "all", timeout_s: float = 10.0) -> httpx.Client:
         return httpx.Client(base_url=self.url, headers=auth(scope), timeout=timeout_s)
 
+    def wait_settled(self, device_id: str, batches: int, samples_per_batch: int = 20,
+                     timeout_s: float = 30.0) -> dict:
+        """Poll GET calibration until the device has ``batches`` stored and every sample of
+        them fed or rejected (``samples_processed + rejected_samples``); return the body."""
+        with self.client("read") as c:
+            deadline = time.monotonic() + timeout_s
+            body: dict = {}
+            while time.monotonic() < deadline:
+                r = c.get(f"/devices/{device_id}/calibration")
+                if r.status_code == 200:
+                    body = r.json()
+                    done = body["samples_processed"] + body["rejected_samples"]
+                    if body["batches_stored"] == batches and done == batches * samples_per_batch:
+                        return body
+                time.sleep(0.05)
+        raise AssertionError(f"{device_id} not settled: {body}")
+
     def wait_processed(self, device_id: str, seq: int, timeout_s: float = 60.0) -> dict:
         """Poll GET calibration until the worker has processed up to ``seq``."""
         with self.client("read") as c:

@@ -41,8 +41,7 @@ class Sender:
         dev, seq = key
         body = self.bodies[key]
         try:
-            with httpx.Client(base_url=self.srv.url, timeout=10,
-                              headers={"Authorization": "Bearer ingest-key-0001"}) as c:
+            with self.srv.client("ingest") as c:
                 if binary:
                     raw = SampleBatchIn.model_validate(body).to_batch().to_bytes(crc=True)
                     r = c.post(f"/devices/{dev}/samples", content=raw,
@@ -127,13 +126,8 @@ def test_chaos_every_acknowledged_sample_is_fed_once_or_rejected_with_a_reason(t
         assert 500 not in sender.codes
         assert faults.count("kill -9") == KILLS
         # settle, then account for every device
+        bodies = [srv.wait_settled(d, N_BATCHES, timeout_s=60) for d in DEVICES]
         with srv.client("read") as c:
-            deadline = time.monotonic() + 60
-            while time.monotonic() < deadline:
-                bodies = [c.get(f"/devices/{d}/calibration").json() for d in DEVICES]
-                if all(b["samples_processed"] + b["rejected_samples"] == N_BATCHES * 20 for b in bodies):
-                    break
-                time.sleep(0.1)
             for dev, body in zip(DEVICES, bodies):
                 acked = 20 * sum(1 for k in sender.acked if k[0] == dev)
                 assert acked == N_BATCHES * 20
