@@ -14,6 +14,7 @@ Reads use one connection per thread (WAL readers never wait for the writer).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -97,6 +98,9 @@ MIGRATIONS = {
         # v1 had no per-batch state: a batch at or below processed_seq was handled then
         # (fed, or skipped as late without a record); it is marked fed.
         "ALTER TABLE batches ADD COLUMN digest BLOB",
+        # v1 stored every batch in its canonical bytes already: hash them, so that a
+        # resend with other content is a conflict for old batches too
+        "UPDATE batches SET digest = sha256(payload)",
         "ALTER TABLE batches ADD COLUMN state INTEGER NOT NULL DEFAULT 0",
         "ALTER TABLE batches ADD COLUMN reason TEXT",
         "UPDATE batches SET state = 1 WHERE seq <= COALESCE((SELECT d.processed_seq FROM devices d "
@@ -187,6 +191,7 @@ class SQLiteStore(Storage):
 
     def open(self) -> None:
         conn = sqlite3.connect(self.path, isolation_level=None, timeout=30.0)
+        conn.create_function("sha256", 1, lambda b: hashlib.sha256(b).digest(), deterministic=True)
         mode = conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
         if mode.lower() != "wal":
             raise RuntimeError(f"db_path {self.path}: could not enable WAL (got {mode})")

@@ -127,3 +127,56 @@ def test_check_batch_limits():
 def test_jsonable_makes_plain_json():
     out = jsonable({"a": np.float64(np.nan), "b": np.arange(3), "c": (np.int32(2), np.bool_(True)), 4: np.inf})
     assert out == {"a": None, "b": [0, 1, 2], "c": [2, True], "4": None}
+
+
+# ----------------------------------------------------------------- schema migration
+V1_SCHEMA = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE devices (device_id TEXT PRIMARY KEY, created_at REAL NOT NULL,
+    batches_stored INTEGER NOT NULL DEFAULT 0, processed_seq INTEGER,
+    samples_processed INTEGER NOT NULL DEFAULT 0, calibrator_state TEXT, calibrator_status TEXT,
+    last_refit TEXT, feed_state TEXT, current_version INTEGER, updated_at REAL);
+CREATE TABLE batches (device_id TEXT NOT NULL, seq INTEGER NOT NULL, n_samples INTEGER NOT NULL,
+    received_at REAL NOT NULL, payload BLOB NOT NULL, PRIMARY KEY (device_id, seq));
+CREATE TABLE versions (device_id TEXT NOT NULL, version INTEGER NOT NULL, status TEXT NOT NULL,
+    source TEXT NOT NULL, created_at REAL NOT NULL, calibration TEXT NOT NULL, provenance TEXT NOT NULL,
+    PRIMARY KEY (device_id, version));
+INSERT INTO meta VALUES ('schema_version', '1');
+"""
+
+
+def test_v1_database_migrates_and_keeps_the_resend_rules(tmp_path):
+    """A schema-1 database (batches 0 and 1 stored, 0 fed) opens as schema 2: batch 0 is
+    fed, 1 pending; a resend of 1 with its own bytes is a duplicate, with other bytes a
+    conflict (the migration hashed the stored payloads)."""
+    import hashlib
+    import sqlite3
+
+    from selfcal_service.sqlite_store import SQLiteStore
+    from selfcal_service.storage import SeqConflict
+
+    db = tmp_path / "v1.db"
+    b0, b1 = _batch(seed=1), _batch(seed=2)
+    b0.seq, b1.seq = 0, 1
+    conn = sqlite3.connect(db)
+    conn.executescript(V1_SCHEMA)
+    conn.execute("INSERT INTO devices(device_id, created_at, batches_stored, processed_seq) VALUES ('d', 0, 2, 0)")
+    for b in (b0, b1):
+        conn.execute("INSERT INTO batches VALUES ('d', ?, ?, 0, ?)", (b.seq, b.n, b.to_bytes()))
+    conn.commit()
+    conn.close()
+    store = SQLiteStore(str(db))
+    store.open()
+    try:
+        assert [p.seq for p in store.pending_batches("d", 10)] == [1]
+        same = b1.to_bytes()
+        assert store.submit_batch("d", 1, b1.n, same, 1.0, hashlib.sha256(same).digest(), 100).result().duplicate
+        other = _batch(seed=3)
+        other.seq = 1
+        with pytest.raises(SeqConflict):
+            store.submit_batch("d", 1, other.n, other.to_bytes(), 1.0,
+                               hashlib.sha256(other.to_bytes()).digest(), 100).result()
+    finally:
+        store.close()
+    version = sqlite3.connect(db).execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0]
+    assert version == "2"
