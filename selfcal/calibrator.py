@@ -333,7 +333,7 @@ class OnlineCalibrator:
         try:
             fit = fit_poses(self.model, data, prior=prior, theta0_u=theta0, cfg=cfg, robust=True, clusters=clusters)
             # the noise the data show: shared floor and cell noise scaled (never below the model)
-            c_floor, c_noise = variance_components(self.model, fit, data, floor)
+            c_floor, c_noise = variance_components(self.model, fit, data, floor, reject_z=self.fit_cfg.reject_z)
             if c_floor > 1.0 or c_noise > 1.0:
                 cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor * np.sqrt(c_floor)})
                 data = PoseData(data.mean, None if data.sd is None else data.sd * np.sqrt(c_noise),

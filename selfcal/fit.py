@@ -907,7 +907,7 @@ def _psd_max(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def variance_components(model: ErrorModel, fit: "FitResult", poses: PoseData, floor_g: float,
                         bounds: tuple[tuple[float, float], tuple[float, float]] = ((1.0, 400.0), (1.0, 10.0)),
-                        min_poses: int = 30) -> tuple[float, float]:
+                        min_poses: int = 30, reject_z: float | None = None) -> tuple[float, float]:
     """Scale factors ``(c_floor, c_noise)`` of a pose's residual variance ``floor^2 + var_k``.
 
     Method of moments on the fit's residuals: ``r_k^2 / (1 - h_k)`` (``h_k`` the
@@ -915,7 +915,8 @@ def variance_components(model: ErrorModel, fit: "FitResult", poses: PoseData, fl
     ``[floor^2, var_k]`` with weights ``1/sigma_k^4`` and non-negative coefficients,
     then clipped to ``bounds`` (by default never below the model: conservative).
     ``var_k`` is each pose's noise variance as given (``sd^2 / count`` along gravity),
-    ``floor_g`` the shared floor the fit added. Poses beyond ``reject_z`` are left out.
+    ``floor_g`` the shared floor the fit added. Poses beyond ``reject_z`` (the fit's
+    ``FitConfig.reject_z``; its default when None) are left out.
     Returns ``(1, 1)`` with fewer than ``min_poses`` poses.
     """
     from scipy.optimize import nnls
@@ -933,7 +934,7 @@ def variance_components(model: ErrorModel, fit: "FitResult", poses: PoseData, fl
     r, jac = model.residual_jac(fit.theta_u, mean_u, poses.temp_c, poses.t_s)
     jw = jac / np.sqrt(sig2)[:, None]
     h = np.einsum("ij,jk,ik->i", jw, fit.cov_u, jw)
-    keep = np.abs(r) / np.sqrt(sig2) <= FitConfig().reject_z
+    keep = np.abs(r) / np.sqrt(sig2) <= (FitConfig().reject_z if reject_z is None else reject_z)
     if keep.sum() < min_poses:
         return 1.0, 1.0
     y = r[keep] ** 2 / np.clip(1.0 - h[keep], 0.05, 1.0)

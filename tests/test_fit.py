@@ -163,3 +163,22 @@ def test_lm_rejects_steps_that_raise_the_cost_and_stops_with_a_reason():
     res = lm_solve(A9, rng.uniform(0, 1, 9), poses.mean, sigma, datasheet_prior(A9))
     assert res.status in (1, 2, 3) and res.message
     assert res.nfev >= res.n_iter
+
+
+def test_variance_components_leaves_out_poses_beyond_the_given_reject_z():
+    """The noise estimate leaves out the poses the fit rejects, with the fit's reject_z
+    (a [fit] override), not the class default."""
+    from posegen import poses_from_truth, random_truth, spread_directions
+
+    from selfcal.fit import FitConfig, fit_poses, variance_components
+
+    rng = np.random.default_rng(8)
+    model = ErrorModel("affine9")
+    poses = poses_from_truth(rng, model, random_truth(rng), spread_directions(rng, 200))
+    poses.mean[:20] *= 1.0 + rng.choice([-1, 1], (20, 1)) * rng.uniform(0.004, 0.008, (20, 1))  # 4-8 mg off
+    fit = fit_poses(model, poses, robust=True)
+    floor = 1e-4
+    default = variance_components(model, fit, poses, floor)
+    assert default == variance_components(model, fit, poses, floor, reject_z=FitConfig().reject_z)
+    tight = variance_components(model, fit, poses, floor, reject_z=3.0)
+    assert tight != default
