@@ -238,9 +238,12 @@ class RefitWorker:
         (from the time the oldest held batch was stored); then the held batches are fed
         in seq order and the gap is given up. A batch that arrives after a later seq was
         fed is rejected as ``late`` (counted and reported with its reason, never lost
-        silently). A new device's first batch is fed at once if its seq is 0.
+        silently). A new device's first batch is fed at once if its seq is 0. Batches
+        the calibrator refused count as handled (``feed_state['handled_seq']``), so they
+        leave no gap behind them.
         """
-        top = rec.processed_seq
+        handled = [q for q in (rec.processed_seq, rec.feed_state.get("handled_seq")) if q is not None]
+        top = max(handled, default=None)
         late = [r for r in rows if top is not None and r.seq < top]
         fresh = [r for r in rows if top is None or r.seq > top]
         take: list[PendingBatch] = []
@@ -288,6 +291,8 @@ class RefitWorker:
                 feed = dict(rec.feed_state)
                 events, samples, cal, fed, refused = self._feed_isolating(cal, batches, feed, rec)
                 rejected += refused
+            if take:
+                feed["handled_seq"] = max(take[-1].seq, int(feed.get("handled_seq", -1)))
             versions = self._versions(cal, events, feed)
             last_refit = jsonable(getattr(cal, "last_refit", None))
             progress = Progress(

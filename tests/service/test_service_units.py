@@ -180,3 +180,39 @@ def test_v1_database_migrates_and_keeps_the_resend_rules(tmp_path):
         store.close()
     version = sqlite3.connect(db).execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0]
     assert version == "2"
+
+
+# ----------------------------------------------------------------- ordering contract
+def _planner(window_s: float = 10.0):
+    from selfcal_service.metrics import Metrics
+    from selfcal_service.worker import RefitWorker
+
+    return RefitWorker(store=None, factory=None, metrics=Metrics(), reorder_window_s=window_s)
+
+
+def _device(processed_seq, **feed):
+    from selfcal_service.storage import DeviceRecord
+
+    return DeviceRecord("d", 0, processed_seq, 0, None, None, None, dict(feed), None, None)
+
+
+def _pending(seq: int, received_at: float):
+    from selfcal_service.storage import PendingBatch
+
+    return PendingBatch(seq, 20, received_at, b"")
+
+
+def test_plan_feeds_in_order_holds_gaps_rejects_late():
+    w = _planner(10.0)
+    take, late, held = w._plan(_device(3), [_pending(1, 0.0), _pending(4, 0.0), _pending(5, 0.0), _pending(7, 99.0)], 100.0)
+    assert [r.seq for r in take] == [4, 5] and [r.seq for r in late] == [1] and [r.seq for r in held] == [7]
+    take, late, held = w._plan(_device(5), [_pending(7, 80.0), _pending(8, 95.0)], 100.0)  # the gap is 20 s old
+    assert [r.seq for r in take] == [7, 8] and not late and not held
+    take, late, held = w._plan(_device(None), [_pending(0, 99.0), _pending(1, 99.0)], 100.0)
+    assert [r.seq for r in take] == [0, 1]
+
+
+def test_plan_a_batch_the_calibrator_refused_leaves_no_gap():
+    """seq 7 was refused by the calibrator (6 is the highest fed): 8 is fed at once."""
+    take, late, held = _planner(10.0)._plan(_device(6, handled_seq=7), [_pending(8, 99.9)], 100.0)
+    assert [r.seq for r in take] == [8] and not held and not late
