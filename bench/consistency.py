@@ -35,13 +35,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from selfcal.fit import FitConfig, datasheet_prior, predicted_sphere_rms_mg, sphere_directions  # noqa: E402
-from selfcal.models import ErrorModel  # noqa: E402
+from selfcal.scoring import (  # noqa: E402  (the scoring is the library's: selfcal replay --recording too)
+    TruthScorer, consistency_figures, crlb_from_information, load_truth, poses_file_information, run_figures,
+    truth_path,
+)
 
 EFFECTS = ("temperature_bias", "temperature_scale", "time_drift_bias", "scale_nonlinearity")
 
@@ -57,28 +57,9 @@ def _seeds(text: str) -> list[int]:
     return out
 
 
-def crlb_sphere_mg(model: ErrorModel, truth_u: np.ndarray, rec, t_s: float) -> float:
-    """Cramér-Rao whole-sphere error (mg) of a poses recording, with the datasheet prior."""
-    from selfcal.poses import PoseConfig, window_noise_var
-
-    cfg = FitConfig()
-    a = model.apply(truth_u, rec.acc, rec.temp_c, rec.t_s)
-    u = a / np.linalg.norm(a, axis=1, keepdims=True)
-    rate = float(rec.meta.get("rate_hz", 20.0))
-    sd = rec.sd if rec.sd is not None else np.full_like(rec.acc, cfg.default_sample_sd_g)
-    var = window_noise_var(u, sd, rec.n, rate, PoseConfig()) + cfg.sigma_floor_g**2
-    _, jac = model.residual_jac(truth_u, rec.acc, rec.temp_c, rec.t_s)
-    jw = jac / np.sqrt(var)[:, None]
-    prior = datasheet_prior(model, cfg)
-    cov = np.linalg.inv(jw.T @ jw + prior.precision())
-    return predicted_sphere_rms_mg(model, truth_u, cov, t_s)
-
-
 def run_one(job: dict) -> dict:
     """Simulate, calibrate with --history, score. ``job``: seed, days, effect, model, tmp."""
     from selfcal.cli import main as cli_main
-    from selfcal.io import read_recording
-    from selfcal.sim.sensor import SensorTruth, sensor_mean
 
     seed, days, effect, model_name = job["seed"], job["days"], job["effect"], job["model"]
     tmp = Path(job["tmp"])
@@ -96,68 +77,26 @@ def run_one(job: dict) -> dict:
     with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
         code = cli_main(["calibrate", str(rec_path), "--model", model_name, "--history", str(hist_path), "--json"])
     t_cal = time.perf_counter() - t0
-    truth_d = json.loads(rec_path.with_name(rec_path.name[:-4] + ".truth.json").read_text())
-    sensor = SensorTruth.from_dict(truth_d)
-    model = ErrorModel(model_name, truth_d["temp_ref_c"], 0.0)
-    truth_u = model.from_dict({**truth_d["params"],
-                               **{k: v for k, v in truth_d["effect_params"].items() if k in model.param_names}})
-    dirs = sphere_directions(2000)
-    versions = []
-    for line in hist_path.read_text().splitlines() if hist_path.exists() else []:
-        c = json.loads(line)
-        theta = model.from_dict(c["params"])
-        std = np.array([c["std"][n] for n in model.param_names])
-        temp = np.full(len(dirs), sensor.temp_ref_c)
-        tt = np.full(len(dirs), float(c["t_s"]))
-        raw = sensor_mean(sensor, dirs, temp, tt)
-        a = model.apply(theta, raw, temp, tt)
-        true_mg = float(np.sqrt(np.mean((np.linalg.norm(a, axis=1) - 1) ** 2)) * 1e3)
-        versions.append({
-            "version": c["version"], "t_s": c["t_s"], "status": c["status"], "true_mg": true_mg,
-            "predicted_mg": c["predicted_sphere_rms_mg"], "z": ((theta - truth_u) / std).tolist(),
-        })
-    rec = read_recording(rec_path)
-    last_t = versions[-1]["t_s"] if versions else float(rec.t_s[-1])
-    crlb = crlb_sphere_mg(model, truth_u, rec, last_t)
+    scorer = TruthScorer(load_truth(truth_path(rec_path)), model_name)
+    history = [json.loads(line) for line in hist_path.read_text().splitlines()] if hist_path.exists() else []
+    versions = scorer.score_all(history)
+    info, n_poses, rec_last_t = poses_file_information(rec_path, scorer.model, scorer.truth_u)
+    last_t = versions[-1]["t_s"] if versions else rec_last_t
+    crlb = crlb_from_information(scorer.model, scorer.truth_u, info, last_t)
     for p in tmp.glob(f"*-{effect}-{seed}*"):
         p.unlink()
     return {"seed": seed, "effect": effect, "model": model_name, "days": days, "exit_code": code,
-            "versions": versions, "crlb_sphere_mg": crlb, "n_poses": len(rec), "sim_s": t_sim, "calibrate_s": t_cal}
+            "versions": versions, "crlb_sphere_mg": crlb, "n_poses": n_poses, "sim_s": t_sim, "calibrate_s": t_cal}
 
 
 def score(runs: list[dict]) -> dict:
     """Pooled acceptance figures over the calibrated versions of ``runs``."""
-    zs, ratio_ok, jumps, pairs = [], [], 0, 0
-    per_seed = []
-    for r in runs:
-        cal = [v for v in r["versions"] if v["status"] == "calibrated"]
-        for v in cal:
-            zs.extend(np.abs(v["z"]))
-            ratio_ok.append(v["true_mg"] <= 2.5 * v["predicted_mg"] + 0.05)
-        for a, b in zip(cal, cal[1:]):
-            pairs += 1
-            jumps += b["true_mg"] > 1.5 * a["true_mg"] + 0.5
-        final = r["versions"][-1] if r["versions"] else None
-        target = max(0.5, 2 * r["crlb_sphere_mg"])
-        weeks = r["days"] / 7.0
-        per_seed.append({
-            "seed": r["seed"], "effect": r["effect"], "versions": len(r["versions"]),
-            "versions_per_week": len(r["versions"]) / weeks, "calibrated_versions": len(cal),
-            "first_calibrated_h": cal[0]["t_s"] / 3600 if cal else None,
-            "final_status": final["status"] if final else None,
-            "final_true_mg": final["true_mg"] if final else None,
-            "final_predicted_mg": final["predicted_mg"] if final else None,
-            "crlb_sphere_mg": r["crlb_sphere_mg"], "final_target_mg": target,
-            "final_ok": bool(final is not None and final["true_mg"] <= target),
-            "calibrate_s": r["calibrate_s"],
-        })
-    zs = np.asarray(zs)
+    per_seed = [{"seed": r["seed"], "effect": r["effect"],
+                 **run_figures(r["versions"], r["days"], r["crlb_sphere_mg"]), "calibrate_s": r["calibrate_s"]}
+                for r in runs]
     out = {
         "calibrated_versions": int(sum(p["calibrated_versions"] for p in per_seed)),
-        "within_2sd": float(np.mean(zs <= 2)) if zs.size else None,
-        "max_abs_z": float(zs.max()) if zs.size else None,
-        "sphere_ratio_ok": float(np.mean(ratio_ok)) if ratio_ok else None,
-        "jumps": int(jumps), "pairs": int(pairs), "jump_fraction": jumps / pairs if pairs else 0.0,
+        **consistency_figures(r["versions"] for r in runs),
         "max_versions_per_week": max(p["versions_per_week"] for p in per_seed),
         "final_ok_all": all(p["final_ok"] for p in per_seed),
         "per_seed": per_seed,

@@ -22,18 +22,12 @@ import numpy as np
 
 from selfcal.config import load_config, section
 from selfcal.errors import InputError
+from selfcal.scoring import truth_path
 from selfcal.sim.config import EFFECT_NAMES, SimConfig
 from selfcal.sim.simulator import PoseTable, SampleChunk, Simulation
 
 SAMPLE_COLUMNS = ("t_s", "ax_g", "ay_g", "az_g", "temp_c", "p1_kpa", "p2_kpa", "p3_kpa", "p4_kpa")
 _FMT = "%.4f,%.6f,%.6f,%.6f,%.2f,%.2f,%.2f,%.2f,%.2f"
-
-
-def truth_path(out: str | os.PathLike) -> Path:
-    """Where the truth of recording ``out`` goes (``x.csv`` -> ``x.truth.json``)."""
-    p = Path(out)
-    stem = p.name[:-4] if p.name.lower().endswith(".csv") else p.name
-    return p.with_name(stem + ".truth.json")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
