@@ -389,7 +389,14 @@ def create_app(
 
     # ------------------------------------------------------------ latency metrics
     class _Timing:
-        """Pure ASGI middleware (cheaper than BaseHTTPMiddleware): latency by route."""
+        """Pure ASGI middleware (cheaper than BaseHTTPMiddleware): latency by route.
+
+        It also answers an unexpected exception with a JSON 500 *and returns normally*,
+        so the keep-alive connection stays open. (Starlette's outermost error
+        middleware re-raises after its 500, and uvicorn then closes the connection.)
+        Only an exception after the response started still closes it: nothing else
+        can be sent on that connection.
+        """
 
         def __init__(self, inner):
             self.inner = inner
@@ -399,14 +406,23 @@ def create_app(
                 return await self.inner(scope, receive, send)
             t0 = time.perf_counter()
             status = [500]
+            started = [False]
 
             async def send_wrapped(message):
                 if message["type"] == "http.response.start":
                     status[0] = message["status"]
+                    started[0] = True
                 await send(message)
 
             try:
                 await self.inner(scope, receive, send_wrapped)
+            except Exception:
+                if started[0]:
+                    raise
+                log.exception("unhandled error on %s %s", scope.get("method", ""), scope.get("path", ""))
+                metrics.inc("selfcal_http_internal_errors_total")
+                status[0] = 500
+                await _error(500, "internal_error", "internal error (see the server log)")(scope, receive, send)
             finally:
                 route = scope.get("route")
                 metrics.observe(

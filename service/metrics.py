@@ -36,6 +36,8 @@ class Metrics:
         "selfcal_db_write_queue_depth": ("gauge", "writes waiting for the SQLite writer"),
         "selfcal_db_commits_total": ("counter", "SQLite transactions committed (group commits)"),
         "selfcal_db_writes_total": ("counter", "writes committed (batches, worker cycles, versions)"),
+        "selfcal_http_timeouts_total": ("counter", "connections closed for a slow request head or body, by kind"),
+        "selfcal_http_internal_errors_total": ("counter", "unexpected exceptions answered with 500"),
         "selfcal_http_request_duration_seconds": ("histogram", "request latency by route and status class"),
     }
 

@@ -63,6 +63,11 @@ class Settings(BaseModel):
     gil_switch_interval_s: float = Field(
         0.001, gt=0, le=0.1, description="sys.setswitchinterval: refit threads yield the GIL to requests sooner"
     )
+    header_timeout_s: float = Field(
+        10.0, gt=0, le=600, description="a request's line and headers must arrive within this (slow clients)"
+    )
+    body_timeout_s: float = Field(30.0, gt=0, le=3600, description="a request's body must arrive within this")
+    keep_alive_timeout_s: int = Field(5, ge=1, le=600, description="an idle keep-alive connection is closed after this")
     log_level: Literal["critical", "error", "warning", "info", "debug"] = "info"
     access_log: bool = False
 

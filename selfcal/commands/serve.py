@@ -44,7 +44,12 @@ def run(args: argparse.Namespace) -> int:
             "log_level": args.log_level,
         },
     )
+    from selfcal_service.http_protocol import make_protocol
+
     app = create_app(settings, config=cfg)
+    metrics = app.state.metrics
+    protocol = make_protocol(settings.header_timeout_s, settings.body_timeout_s,
+                             on_timeout=lambda kind: metrics.inc("selfcal_http_timeouts_total", kind=kind))
     print(
         f"selfcal serve: http://{settings.host}:{settings.port} db={settings.db_path} "
         f"(synchronous={settings.sqlite_synchronous}, workers={settings.worker_threads})",
@@ -58,5 +63,7 @@ def run(args: argparse.Namespace) -> int:
         log_level=settings.log_level,
         access_log=settings.access_log,
         timeout_graceful_shutdown=10,
+        timeout_keep_alive=settings.keep_alive_timeout_s,
+        http=protocol,
     )
     return 0

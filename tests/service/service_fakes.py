@@ -108,3 +108,10 @@ class FakeCalibrator:
         self.last_refit = d["last_refit"]
         self._calibration = d["calibration"]
         return self
+
+
+class SeedCrashCalibrator(FakeCalibrator):
+    """A fake whose ``seed_calibration`` raises: an admin PUT then hits an unexpected error (a 500)."""
+
+    def seed_calibration(self, params, std=None, t_s: float = 0.0) -> None:
+        raise RuntimeError("injected failure in seed_calibration")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import os
 import random
+import re
 import time
 import zlib
 from pathlib import Path
@@ -270,3 +271,120 @@ def test_full_disk_then_recovery_without_restart(tmp_path, tmpfs):
         assert body["samples_processed"] + 20 * body["rejected_batches"] == 41 * 20
     finally:
         s.kill9()
+
+
+# ------------------------------------------------------------------ 6. keep-alive after a 500
+def _raw_exchange(sock, request: bytes) -> tuple[int, dict[str, str], bytes]:
+    """Send one HTTP/1.1 request on an open socket and read one response (Content-Length framed)."""
+    sock.sendall(request)
+    data = b""
+    while b"\r\n\r\n" not in data:
+        chunk = sock.recv(65536)
+        assert chunk, "the server closed the connection"
+        data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    headers = {k.strip().lower(): v.strip() for k, _, v in (line.partition(":") for line in lines[1:])}
+    while len(body) < int(headers.get("content-length", 0)):
+        chunk = sock.recv(65536)
+        assert chunk, "the server closed the connection mid-body"
+        body += chunk
+    return int(lines[0].split(" ")[1]), headers, body
+
+
+def test_a_500_keeps_the_keep_alive_connection_open(tmp_path):
+    """An unexpected error is a JSON 500, and the same connection then serves the next request."""
+    import json
+    import socket
+
+    from service_helpers import KEYS
+
+    srv = ServerProcess(tmp_path / "selfcal.db", tmp_path, calibrator="service_fakes:SeedCrashCalibrator")
+    srv.start()
+    try:
+        body = json.dumps({"matrix": np.eye(3).tolist(), "offset": [0.01, 0, 0]}).encode()
+        put = (f"PUT /devices/crash/calibration HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {KEYS['all']}\r\n"
+               f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n").encode() + body
+        get = (f"GET /devices/crash/calibration HTTP/1.1\r\nHost: x\r\n"
+               f"Authorization: Bearer {KEYS['all']}\r\n\r\n").encode()
+        with socket.create_connection(("127.0.0.1", srv.port), timeout=10) as sock:
+            status, headers, payload = _raw_exchange(sock, put)
+            assert status == 500 and json.loads(payload)["error"] == "internal_error"
+            assert headers.get("connection", "").lower() != "close"
+            status, _, payload = _raw_exchange(sock, get)  # same socket: it was not closed
+            assert status == 404 and json.loads(payload)["error"] == "not_found"  # the PUT stored nothing
+            status, _, _ = _raw_exchange(sock, put)
+            assert status == 500
+        with srv.client("read") as c:
+            assert 'selfcal_http_internal_errors_total 2' in c.get("/metrics").text
+    finally:
+        srv.stop()
+
+
+# ------------------------------------------------------------------ 6. slow clients
+def test_slow_clients_are_disconnected_and_others_still_served(tmp_path):
+    """Half-sent heads, dripped heads and stalled bodies are closed at their deadlines;
+    an ordinary keep-alive client that pauses between requests is not."""
+    import selectors
+    import socket
+
+    from service_helpers import KEYS
+
+    srv = server(tmp_path, header_timeout_s=1.0, body_timeout_s=2.0, keep_alive_timeout_s=5)
+    socks: dict[str, list[socket.socket]] = {"silent": [], "half_head": [], "drip": [], "stalled_body": []}
+    try:
+        for kind, n in (("silent", 50), ("half_head", 200), ("drip", 20), ("stalled_body", 30)):
+            for _ in range(n):
+                s = socket.create_connection(("127.0.0.1", srv.port), timeout=10)
+                if kind == "half_head":
+                    s.sendall(b"POST /devices/slow/samples HTTP/1.1\r\nHost: x\r\n")
+                elif kind == "drip":
+                    s.sendall(b"G")
+                elif kind == "stalled_body":
+                    s.sendall((f"POST /devices/slow/samples HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+                               f"{KEYS['ingest']}\r\nContent-Type: application/json\r\n"
+                               f"Content-Length: 1000\r\n\r\n{{\"seq\": 0,").encode())
+                socks[kind].append(s)
+        # meanwhile an ordinary client is served, and pausing 1.5 s between requests is fine
+        with srv.client("read") as c:
+            for _ in range(3):
+                assert c.get("/devices").status_code == 200
+                time.sleep(1.5)
+            assert c.get("/devices").status_code == 200
+            # every slow socket is closed by the server (recv gives b"" or a reset)
+            sel = selectors.DefaultSelector()
+            for kind, group in socks.items():
+                for s in group:
+                    s.setblocking(False)
+                    sel.register(s, selectors.EVENT_READ, kind)
+            open_left = {k: len(v) for k, v in socks.items()}
+            deadline = time.monotonic() + 30
+            drip = b"ET /healthz HTTP/1.1\r\nHost: x\r\n"
+            i = 0
+            while sum(open_left.values()) and time.monotonic() < deadline:
+                for key, _ in sel.select(timeout=0.2):
+                    try:
+                        data = key.fileobj.recv(4096)
+                    except (ConnectionResetError, BlockingIOError):
+                        data = b""
+                    assert not data or key.data == "stalled_body", data  # no response to a half request
+                    sel.unregister(key.fileobj)
+                    open_left[key.data] -= 1
+                for s in socks["drip"]:  # one more byte of the head every 0.2 s
+                    if s.fileno() != -1 and i < len(drip):
+                        try:
+                            s.send(drip[i:i + 1])
+                        except OSError:
+                            pass
+                i += 1
+            assert open_left == {"silent": 0, "half_head": 0, "drip": 0, "stalled_body": 0}
+            assert c.get("/devices").status_code == 200
+            text = c.get("/metrics").text
+        counts = dict(re.findall(r'selfcal_http_timeouts_total\{kind="(\w+)"\} (\d+)', text))
+        assert int(counts["header"]) >= 270 and int(counts["body"]) >= 30, counts
+        assert srv.proc.poll() is None
+    finally:
+        for group in socks.values():
+            for s in group:
+                s.close()
+        srv.stop()
