@@ -104,8 +104,8 @@ async def load_main(args) -> None:
     rng = np.random.default_rng(args.seed)
     n_batch = int(round(args.batch_s * RATE_HZ))
     stream = insole_stream(rng, 20000)
-    steps = [int(x) for x in args.devices.split(",")]
-    max_dev = max(steps)
+    steps = [] if args.devices == "none" else [int(x) for x in args.devices.split(",")]
+    max_dev = max(steps, default=1)
     seq = [0] * max_dev
     cursor = [int(c) for c in rng.integers(0, len(stream) - n_batch, max_dev)]
     queue: asyncio.Queue = asyncio.Queue()
@@ -154,6 +154,72 @@ async def load_main(args) -> None:
                 lat.append(time.perf_counter() - t0)
             await asyncio.sleep(1.0 / args.get_hz)
 
+    def summary(lat: list) -> dict:
+        lat_ms = np.array(lat) * 1e3 if lat else np.array([np.nan])
+        return {"get_p50_ms": round(float(np.percentile(lat_ms, 50)), 2),
+                "get_p99_ms": round(float(np.percentile(lat_ms, 99)), 2),
+                "get_max_ms": round(float(lat_ms.max()), 2), "get_n": len(lat)}
+
+    async def probe_ids(ids: list[str], lat: list, stop: float):
+        conn = Conn(host, port)
+        r = random.Random(args.seed)
+        while time.monotonic() < stop:
+            t0 = time.perf_counter()
+            status, _ = await conn.request("GET", f"/devices/{r.choice(ids)}/calibration")
+            if status in (200, 404):
+                lat.append(time.perf_counter() - t0)
+            await asyncio.sleep(1.0 / args.get_hz)
+
+    # ---- phase 1: idle (two known devices, nothing else running)
+    ids = [f"inflight-{d}" for d in range(args.inflight_devices)]
+    nb = args.inflight_batch
+    next_seq = {i: 0 for i in ids}
+    c0 = Conn(host, port)
+    for i in ids:
+        body, ctype = encode(args.format, 0, np.arange(nb) / RATE_HZ, stream[:nb])
+        await c0.request("POST", f"/devices/{i}/samples", body, ctype)
+        next_seq[i] = 1
+    await asyncio.sleep(1.0)
+    lat: list[float] = []
+    await probe_ids(ids, lat, time.monotonic() + args.step_s)
+    print(json.dumps({"phase": "idle", "devices": 0, "in_flight": 0, "req_per_s": 0, "errors": 0,
+                      **summary(lat)}), flush=True)
+
+    # ---- phase 2: a few devices, each with K requests in flight (closed loop, paced)
+    stats = {"acked": 0, "errors": 0, "sent": 0}
+
+    async def inflight_sender(dev: str, k: int, stop: float):
+        conn = Conn(host, port)
+        period = args.inflight_devices * args.inflight / args.inflight_rate
+        nxt = time.monotonic() + k * period / args.inflight
+        while time.monotonic() < stop:
+            s = next_seq[dev]
+            next_seq[dev] += 1
+            t = s * nb / RATE_HZ + np.arange(nb) / RATE_HZ
+            c = (s * nb) % (len(stream) - nb)
+            body, ctype = encode(args.format, s, t, stream[c: c + nb])
+            try:
+                status, _ = await conn.request("POST", f"/devices/{dev}/samples", body, ctype)
+            except (OSError, asyncio.IncompleteReadError):
+                status, conn = 0, Conn(host, port)
+            stats["sent"] += 1
+            stats["acked" if status == 200 else "errors"] += 1
+            nxt += period
+            await asyncio.sleep(max(0.0, nxt - time.monotonic()))
+
+    stop = time.monotonic() + args.warmup_s + args.step_s
+    tasks = [asyncio.create_task(inflight_sender(d, k, stop)) for d in ids for k in range(args.inflight)]
+    await asyncio.sleep(args.warmup_s)
+    lat = []
+    a0, e0, t0 = stats["acked"], stats["errors"], time.monotonic()
+    await probe_ids(ids, lat, stop)
+    a1, e1, t1 = stats["acked"], stats["errors"], time.monotonic()
+    await asyncio.gather(*tasks)
+    print(json.dumps({"phase": "in-flight", "devices": args.inflight_devices, "in_flight": args.inflight,
+                      "req_per_s": round((a1 - a0) / (t1 - t0), 1), "errors": e1 - e0, **summary(lat)}), flush=True)
+    if args.devices == "none":
+        return
+
     senders = [asyncio.create_task(sender()) for _ in range(args.connections)]
     for n_dev in steps:
         stop = time.monotonic() + args.warmup_s + args.step_s
@@ -168,11 +234,9 @@ async def load_main(args) -> None:
         await probe
         offered = n_dev * RATE_HZ
         sustained = (a1 - a0) / (t1 - t0)
-        lat_ms = np.array(lat) * 1e3 if lat else np.array([np.nan])
-        rec = {"devices": n_dev, "offered_sps": offered, "sustained_sps": round(sustained),
-               "req_per_s": round(sustained / n_batch, 1), "backlog_batches": queue.qsize(),
-               "errors": e1 - e0, "get_p50_ms": round(float(np.percentile(lat_ms, 50)), 2),
-               "get_p99_ms": round(float(np.percentile(lat_ms, 99)), 2), "get_n": len(lat)}
+        rec = {"phase": "fleet", "devices": n_dev, "in_flight": args.connections, "offered_sps": offered,
+               "sustained_sps": round(sustained), "req_per_s": round(sustained / n_batch, 1),
+               "backlog_batches": queue.qsize(), "errors": e1 - e0, **summary(lat)}
         print(json.dumps(rec), flush=True)
         while not queue.empty():  # drain backlog between steps (bounded: the queue only shrinks)
             queue.get_nowait()
@@ -212,6 +276,10 @@ def main() -> int:
     p.add_argument("--format", choices=["json", "binary", "both"], default="both")
     p.add_argument("--workers", type=int, default=1, help="refit worker threads of the server")
     p.add_argument("--synchronous", choices=["FULL", "NORMAL"], default="FULL")
+    p.add_argument("--inflight-devices", type=int, default=2, help="devices of the in-flight phase")
+    p.add_argument("--inflight", type=int, default=4, help="requests in flight per device (in-flight phase)")
+    p.add_argument("--inflight-rate", type=float, default=200.0, help="POST/s offered in the in-flight phase")
+    p.add_argument("--inflight-batch", type=int, default=20, help="samples per batch in the in-flight phase")
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--load-only", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
@@ -247,11 +315,19 @@ def main() -> int:
                     [sys.executable, __file__, "--load-only", "--port", str(port), "--devices", args.devices,
                      "--batch-s", str(args.batch_s), "--step-s", str(args.step_s), "--warmup-s", str(args.warmup_s),
                      "--connections", str(args.connections), "--get-hz", str(args.get_hz), "--format", fmt,
-                     "--seed", str(args.seed)],
+                     "--seed", str(args.seed), "--inflight-devices", str(args.inflight_devices),
+                     "--inflight", str(args.inflight), "--inflight-rate", str(args.inflight_rate),
+                     "--inflight-batch", str(args.inflight_batch)],
                     stdout=subprocess.PIPE, text=True,
                 )
                 for line in load.stdout:
                     r = json.loads(line)
+                    if r["phase"] != "fleet":
+                        label = "idle (GET only)" if r["phase"] == "idle" else \
+                            f"{r['devices']} devices x {r['in_flight']} in flight, {r['req_per_s']:g} POST/s"
+                        print(f"[{fmt}] {label:<44} GET p50 {r['get_p50_ms']:6.2f} ms  p99 {r['get_p99_ms']:6.2f} ms  "
+                              f"max {r['get_max_ms']:6.2f} ms  (n={r['get_n']}, errors {r['errors']})", flush=True)
+                        continue
                     print(f"[{fmt}] {r['devices']:7d}  {r['offered_sps']:9.0f}  {r['sustained_sps']:11.0f}  "
                           f"{r['req_per_s']:5.0f}  {r['get_p50_ms']:10.2f}  {r['get_p99_ms']:10.2f}  {r['errors']:6d}",
                           flush=True)
