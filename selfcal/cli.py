@@ -23,7 +23,7 @@ COMMANDS = {
     "apply": "write a recording with calibrated specific force in g",
     "diagnose": "measured vs simulated: find what the base model misses",
     "simulate": "write a simulated insole recording and its truth",
-    "replay": "long-horizon replay of simulated wear against the truth",
+    "replay": "long-horizon replay of simulated wear, or of a recorded file (--recording), against the truth",
     "serve": "start the calibration service (FastAPI + SQLite)",
     "gateway": "run the BLE gateway that forwards insole streams to the service",
     "demo": "the whole system end to end: service, virtual insoles, gateway",

@@ -312,6 +312,12 @@ def calibrate_path(
     )
 
 
+def published_versions(run: CalibrationRun) -> list[dict]:
+    """Every version a run published, in time order, each in the recording's unit (``--history``)."""
+    return [version_in_unit(ev["calibration"], run.calibrator.model, run.normalizer, run.unit)
+            for ev in run.events if ev.get("published") and ev.get("calibration") is not None]
+
+
 def to_raw_calibration(cal: OnlineCalibrator, normalizer: Normalizer, unit: str) -> dict | None:
     """The calibrator's published model expressed in the recording's unit (contract JSON)."""
     cur = cal.calibration()

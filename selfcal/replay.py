@@ -26,6 +26,12 @@ Metrics (every refit, and the initial model), against the simulation truth:
   (``R_true (raw − b_true)``). The mounting rotation that norms cannot see (method.md
   §1) is excluded; it needs a reference direction and is not a calibration error.
 * ``n_poses``, ``fit_ms``, ``status``, the refit outcome.
+
+A recorded file (:func:`replay_recording`, ``selfcal replay --recording FILE``) is
+streamed in blocks through the online calibrator as shipped, exactly as ``selfcal
+calibrate`` streams it, and every version it publishes is scored against the truth
+``selfcal simulate --out FILE`` wrote beside it (:mod:`selfcal.scoring`, the scores of
+``bench/consistency.py``).
 """
 
 from __future__ import annotations
@@ -269,3 +275,81 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
     if bar:
         bar.close()
     return results  # type: ignore[return-value]
+
+
+def replay_recording(
+    path: str | Path,
+    model: str = "affine9",
+    *,
+    config: dict | None = None,
+    truth: dict | None = None,
+    progress: bool = False,
+    block_rows: int = 100_000,
+) -> dict[str, Any]:
+    """Replay a recorded file through the online calibrator; score every published version.
+
+    The file is streamed in blocks exactly as ``selfcal calibrate`` streams it
+    (:func:`selfcal.pipeline.calibrate_path`), so memory does not grow with its length.
+    See :func:`score_recording_run` for the result.
+
+    Parameters
+    ----------
+    path : recording file (selfcal CSV, samples or poses; a device file)
+    model : str — the calibrator's model
+    config : dict — loaded configuration
+    truth : dict — the simulation truth (:func:`selfcal.scoring.load_truth`), or None
+    progress : bool — progress bar by bytes read on stderr
+    block_rows : int — rows per block read
+    """
+    from selfcal.pipeline import calibrate_path
+
+    t0 = time.perf_counter()
+    run = calibrate_path(path, model, config, progress=progress, block_rows=block_rows)
+    out = score_recording_run(run, path, truth, block_rows=block_rows)
+    out["wall_s"] = time.perf_counter() - t0
+    return out
+
+
+def score_recording_run(run, path: str | Path, truth: dict | None = None, block_rows: int = 100_000) -> dict[str, Any]:
+    """A :class:`selfcal.pipeline.CalibrationRun` of ``path``: its versions, scored when ``truth`` is given.
+
+    Returns ``{"recording", "model", "unit", "status", "n_windows", "notes", "versions",
+    "summary"}``. Each of ``versions`` (in time order, as ``calibrate --history`` writes
+    them) has ``version``, ``t_s``, ``status``, ``predicted_mg``, ``params`` and ``std``
+    (the recording's unit); with a truth also ``true_mg`` and ``z`` (see
+    :mod:`selfcal.scoring`). ``summary``: :func:`selfcal.scoring.run_figures` (over the
+    truth's ``days``; the CRLB and the final target for a poses file, whose rows are the
+    still windows) and, with a truth, :func:`selfcal.scoring.consistency_figures`.
+    """
+    from selfcal.errors import InputError
+    from selfcal.pipeline import published_versions
+    from selfcal.scoring import (TruthScorer, consistency_figures, crlb_from_information, poses_file_information,
+                                 run_figures, version_row)
+
+    calibrations = published_versions(run)
+    notes = list(run.notes)
+    days = crlb = None
+    if truth is None:
+        rows = [version_row(c) for c in calibrations]
+    else:
+        if run.unit != truth.get("unit", "g"):
+            raise InputError(f"{path}: the recording is in {run.unit}, its truth in {truth.get('unit', 'g')}; "
+                             "a truth scores the simulated recording it was written with")
+        if truth.get("recording") and truth["recording"] != Path(path).name:
+            notes.append(f"the truth was written for {truth['recording']!r}, not {Path(path).name!r}")
+        scorer = TruthScorer(truth, run.calibrator.model.name)
+        rows = scorer.score_all(calibrations)
+        days = truth.get("days")
+        info = poses_file_information(path, scorer.model, scorer.truth_u, block_rows)
+        if info is not None and info[1] > 0:
+            last_t = rows[-1]["t_s"] if rows else info[2]
+            crlb = crlb_from_information(scorer.model, scorer.truth_u, info[0], last_t)
+    for row, c in zip(rows, calibrations):
+        row["params"], row["std"] = c["params"], c["std"]
+    summary = run_figures(rows, days, crlb)
+    if truth is not None:
+        summary.update(consistency_figures([rows]))
+    return {
+        "recording": str(path), "model": run.calibrator.model.name, "unit": run.unit, "status": run.status,
+        "n_windows": int(run.n_windows), "notes": notes, "versions": rows, "summary": summary,
+    }

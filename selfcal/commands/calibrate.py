@@ -48,15 +48,12 @@ def check_writable(path: str) -> None:
 
 def write_history(path: str, result) -> int:
     """Write every published version of a run as JSON lines (recording unit); returns the count."""
-    from selfcal.pipeline import version_in_unit
+    from selfcal.pipeline import published_versions
 
     n = 0
     tmp = Path(path).with_name(Path(path).name + ".tmp")
     with tmp.open("w", encoding="utf-8") as fh:
-        for ev in result.events:
-            if not ev.get("published") or ev.get("calibration") is None:
-                continue
-            c = version_in_unit(ev["calibration"], result.calibrator.model, result.normalizer, result.unit)
+        for c in published_versions(result):
             fh.write(json.dumps(c, separators=(",", ":")) + "\n")
             n += 1
     os.replace(tmp, path)

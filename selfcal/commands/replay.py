@@ -1,38 +1,73 @@
-"""``selfcal replay --days D --refit-every-days R --seed S [--devices N] [--json]``."""
+"""``selfcal replay``: long-horizon replay of simulated wear, or of a recorded file, against the truth.
+
+* ``selfcal replay --days D --refit-every-days R --seed S [--devices N] [--json]``: simulate
+  wear and replay it (:func:`selfcal.replay.replay`).
+* ``selfcal replay --recording FILE [--truth T.json] [--history H.jsonl] [--json]``: stream
+  a recorded file through the online calibrator exactly as ``selfcal calibrate`` does and
+  score every published version against ``FILE.truth.json`` (written by ``selfcal
+  simulate --out FILE``) when there is one (:func:`selfcal.replay.replay_recording`).
+"""
 
 from __future__ import annotations
 
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from selfcal.config import load_config
-from selfcal.errors import InputError
+from selfcal.errors import CalibrationError, InputError
 from selfcal.sim import EFFECT_NAMES
+
+#: The simulation's options and their defaults (None in the parser: a given one is seen).
+SIM_DEFAULTS = {"days": 30.0, "refit_every_days": 3.0, "seed": 0, "devices": 1, "workers": None, "effects": "",
+                "level": "poses", "no_random_init": False, "checkpoint": None}
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--days", type=float, default=30.0, help="simulated days of wear")
-    parser.add_argument("--refit-every-days", type=float, default=3.0,
-                        help="the insole paper's protocol period (0: the calibrator's own scheduler)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--devices", type=int, default=1, help="independent devices (seeds seed..seed+N-1), across processes")
-    parser.add_argument("--workers", type=int, default=None, help="processes for --devices (default: CPU count)")
-    parser.add_argument("--effects", default="", help=f"comma-separated sensor effects to simulate: {', '.join(EFFECT_NAMES)}")
+    rec = parser.add_argument_group("replay a recorded file")
+    rec.add_argument("--recording", metavar="FILE",
+                     help="replay this file instead of simulating: streamed in blocks as calibrate does, every "
+                          "published version scored against FILE.truth.json when there is one")
+    rec.add_argument("--truth", metavar="T.json",
+                     help="the truth file (default: the one selfcal simulate --out FILE wrote beside it)")
+    rec.add_argument("--history", metavar="FILE.jsonl",
+                     help="write every published version here, as calibrate --history does")
+    sim = parser.add_argument_group("simulate wear (not with --recording)")
+    sim.add_argument("--days", type=float, default=None, help="simulated days of wear (default 30)")
+    sim.add_argument("--refit-every-days", type=float, default=None,
+                     help="the insole paper's protocol period (default 3; 0: the calibrator's own scheduler)")
+    sim.add_argument("--seed", type=int, default=None, help="simulation seed (default 0)")
+    sim.add_argument("--devices", type=int, default=None,
+                     help="independent devices (seeds seed..seed+N-1), across processes (default 1)")
+    sim.add_argument("--workers", type=int, default=None, help="processes for --devices (default: CPU count)")
+    sim.add_argument("--effects", default=None, help=f"comma-separated sensor effects to simulate: {', '.join(EFFECT_NAMES)}")
+    sim.add_argument("--level", choices=("poses", "samples"), default=None,
+                     help="feed still windows (fast, the default) or the full 20 Hz stream through the detector")
+    sim.add_argument("--no-random-init", action="store_true", help="start from the nominal model, not random [0, 1]")
+    sim.add_argument("--checkpoint", metavar="FILE", help="checkpoint after every refit; resume from it")
     parser.add_argument("--model", default="affine9", help="the calibrator's model")
-    parser.add_argument("--level", choices=("poses", "samples"), default="poses",
-                        help="feed still windows (fast) or the full 20 Hz stream through the detector")
-    parser.add_argument("--no-random-init", action="store_true", help="start from the nominal model, not random [0, 1]")
-    parser.add_argument("--checkpoint", metavar="FILE", help="checkpoint after every refit; resume from it")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
 def run(args) -> int:
     from selfcal.replay import replay, replay_fleet
 
+    given = [k for k in SIM_DEFAULTS if getattr(args, k) is not None and getattr(args, k) is not False]  # 0 is given
+    if args.recording is not None:
+        if given:
+            flags = ", ".join("--" + k.replace("_", "-") for k in given)
+            raise InputError(f"--recording replays a file; the simulation's options ({flags}) do not apply to it")
+        return run_recording(args)
+    for flag in ("truth", "history"):
+        if getattr(args, flag) is not None:
+            raise InputError(f"--{flag} takes --recording FILE (a simulated replay knows its truth)")
+    for k, default in SIM_DEFAULTS.items():
+        if getattr(args, k) is None:
+            setattr(args, k, default)
     effects = tuple(e for e in args.effects.split(",") if e)
     bad = [e for e in effects if e not in EFFECT_NAMES]
     if bad:
@@ -80,3 +115,82 @@ def run(args) -> int:
         print(f"{row['day']:5.1f} {row['param_rel_error']:14.4f} {row['sphere_norm_rms_mg']:14.3f} "
               f"{row['tilt_error_deg']:9.3f} {row['n_poses']:6d} {fit}  {outcome}")
     return 0
+
+
+def run_recording(args) -> int:
+    """``--recording FILE``: the file through the online calibrator, every published version scored."""
+    from selfcal.commands.calibrate import check_writable, write_history
+    from selfcal.models import ErrorModel
+    from selfcal.pipeline import calibrate_path
+    from selfcal.replay import score_recording_run
+    from selfcal.scoring import load_truth, truth_path
+
+    rec = args.recording
+    ErrorModel(args.model)  # every check before the work, none after it
+    cfg = load_config(args.config)
+    if Path(rec).is_dir():
+        raise InputError(f"{rec}: is a directory, not a recording file")
+    if not Path(rec).exists():
+        raise InputError(f"{rec}: no such file")
+    if args.history:
+        check_writable(args.history)
+    tp = Path(args.truth) if args.truth else truth_path(rec)
+    truth = load_truth(tp) if args.truth or tp.exists() else None
+    t0 = time.perf_counter()
+    # streamed in blocks, as calibrate: only the still poses stay in memory, whatever the file's length
+    run = calibrate_path(rec, args.model, cfg, progress=not args.no_progress and sys.stderr.isatty())
+    if args.history:
+        write_history(args.history, run)
+    out = score_recording_run(run, rec, truth)
+    out["truth"] = None if truth is None else str(tp)
+    if truth is None:
+        out["notes"].append(f"no truth found (looked for {tp}): the version history only; selfcal simulate "
+                            "--out FILE writes FILE.truth.json beside the recording (or give --truth)")
+    out["wall_s"] = time.perf_counter() - t0
+    failure = None
+    if not out["versions"]:
+        reason = run.last_refit["reason"] if run.last_refit else "no_still_poses"
+        message = run.last_refit["message"] if run.last_refit else "no still window was found"
+        out.update(reason=reason, message=message)
+        failure = CalibrationError(reason, f"{rec}: no calibration published: {message}")
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print_recording_replay(out)
+    if failure:
+        raise failure
+    return 0
+
+
+def print_recording_replay(out: dict) -> None:
+    """The human-readable report of ``replay --recording``."""
+    s, rows, scored = out["summary"], out["versions"], out["truth"] is not None
+    first = (f"first 'calibrated' after {s['first_calibrated_h']:.1f} h" if s["first_calibrated_h"] is not None
+             else "never 'calibrated'")
+    print(f"replay of {out['recording']} (model {out['model']}): {s['versions']} versions published from "
+          f"{out['n_windows']} still windows; {first}; final status {out['status']}")
+    if scored:
+        print(f"truth: {out['truth']}")
+    for note in out["notes"]:
+        print(f"  note: {note}")
+    if not rows:
+        return
+    print(f"{'version':>7} {'day':>7}  {'status':<12} {'predicted mg':>12}" + (f" {'true mg':>9} {'max |z|':>8}" if scored else ""))
+    for r in rows:
+        line = f"{r['version']:>7} {r['t_s'] / 86400:7.2f}  {r['status']:<12} {r['predicted_mg']:12.3f}"
+        if scored:
+            line += f" {r['true_mg']:9.3f} {max(abs(z) for z in r['z']):8.2f}"
+        print(line)
+    if not scored:
+        return
+    final = f"final: true {s['final_true_mg']:.3f} mg, predicted {s['final_predicted_mg']:.3f} mg"
+    if s["crlb_sphere_mg"] is not None:
+        final += (f"; CRLB {s['crlb_sphere_mg']:.3f} mg, target {s['final_target_mg']:.2f} mg: "
+                  f"{'within' if s['final_ok'] else 'ABOVE'}")
+    print(final)
+    if s["versions_per_week"] is not None:
+        print(f"{s['versions_per_week']:.1f} versions per week")
+    if s["calibrated_versions"]:
+        print(f"{s['calibrated_versions']} calibrated versions: {100 * s['within_2sd']:.1f} % of parameter errors "
+              f"within 2 sd (max {s['max_abs_z']:.2f} sd); true <= 2.5 x predicted + 0.05 mg in "
+              f"{100 * s['sphere_ratio_ok']:.1f} %; jumps {s['jumps']}/{s['pairs']}")
