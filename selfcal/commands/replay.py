@@ -105,9 +105,10 @@ def run(args) -> int:
               f"{out['device_days_per_s']:.1f} simulated device-days/s; final sphere RMS median "
               f"{out['final_sphere_norm_rms_mg']['median']:.3f} mg, max {out['final_sphere_norm_rms_mg']['max']:.3f} mg")
         return 0
+    first = (f"first 'calibrated' after {out['time_to_calibrated_h']:.1f} h" if out["time_to_calibrated_h"] is not None
+             else "never 'calibrated'")
     print(f"replay seed {out['seed']}: {out['days']:g} days, refit every {out['refit_every_days']:g} days, "
-          f"level {out['level']}, effects {out['effects'] or 'none'}; first 'calibrated' after "
-          f"{out['time_to_calibrated_h']:.1f} h" if out["time_to_calibrated_h"] is not None else "never 'calibrated'")
+          f"level {out['level']}, effects {out['effects'] or 'none'}; {first}")
     print(f"{'day':>5} {'param rel err':>14} {'sphere RMS mg':>14} {'tilt deg':>9} {'poses':>6} {'fit ms':>7}  outcome")
     for row in [out["initial"]] + out["refits"]:
         fit = f"{row['fit_ms']:7.2f}" if row.get("fit_ms") is not None else "      -"
