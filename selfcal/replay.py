@@ -289,8 +289,10 @@ def replay_recording(
     """Replay a recorded file through the online calibrator; score every published version.
 
     The file is streamed in blocks exactly as ``selfcal calibrate`` streams it
-    (:func:`selfcal.pipeline.calibrate_path`), so memory does not grow with its length.
-    See :func:`score_recording_run` for the result.
+    (:func:`selfcal.pipeline.calibrate_path`): a samples table in g or m/s² is never read
+    whole, so memory does not grow with its length (poses tables, device files and raw
+    counts are read whole, as ``calibrate`` reads them). See :func:`score_recording_run`
+    for the result.
 
     Parameters
     ----------
