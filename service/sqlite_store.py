@@ -118,6 +118,11 @@ _DEVICE_COLS = (
     "rejected_batches, rejected_samples, last_rejection"
 )
 _N_DEVICE_COLS = len(_DEVICE_COLS.split(","))
+# what the read routes select: every device column but the calibrator state, which can be
+# a megabyte for a device worn for weeks (thousands of pose cells) and no read needs
+_DEVICE_READ_COLS = ", ".join(
+    "NULL" if c.strip() == "calibrator_state" else f"d.{c.strip()}" for c in _DEVICE_COLS.split(",")
+)
 
 _STOP = object()
 
@@ -462,7 +467,7 @@ class SQLiteStore(Storage):
     def current(self, device_id: str) -> tuple[DeviceRecord, VersionRecord | None] | None:
         conn = self._reader()
         row = conn.execute(
-            f"SELECT d.{_DEVICE_COLS}, v.version, v.status, v.source, v.created_at, v.calibration, "
+            f"SELECT {_DEVICE_READ_COLS}, v.version, v.status, v.source, v.created_at, v.calibration, "
             "v.provenance FROM devices d LEFT JOIN versions v "
             "ON v.device_id = d.device_id AND v.version = d.current_version "
             "WHERE d.device_id = ?",
@@ -492,7 +497,7 @@ class SQLiteStore(Storage):
 
     def list_devices(self, after: str | None, limit: int) -> list[tuple[DeviceRecord, str]]:
         rows = self._reader().execute(
-            f"SELECT d.{_DEVICE_COLS}, COALESCE(v.status, 'uncalibrated') FROM devices d "
+            f"SELECT {_DEVICE_READ_COLS}, COALESCE(v.status, 'uncalibrated') FROM devices d "
             "LEFT JOIN versions v ON v.device_id = d.device_id AND v.version = d.current_version "
             "WHERE d.device_id > ? ORDER BY d.device_id LIMIT ?",
             (after or "", limit),

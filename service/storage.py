@@ -158,7 +158,9 @@ class Storage(abc.ABC):
 
     # -- reads
     @abc.abstractmethod
-    def current(self, device_id: str) -> tuple[DeviceRecord, VersionRecord | None] | None: ...
+    def current(self, device_id: str) -> tuple[DeviceRecord, VersionRecord | None] | None:
+        """(device row, served version) for the read routes: ``calibrator_state`` is None
+        (it can be megabytes and no read needs it; ``load_device`` has it)."""
 
     @abc.abstractmethod
     def history(self, device_id: str) -> list[VersionRecord]: ...
@@ -168,7 +170,8 @@ class Storage(abc.ABC):
 
     @abc.abstractmethod
     def list_devices(self, after: str | None, limit: int) -> list[tuple[DeviceRecord, str]]:
-        """Devices ordered by id (after ``after``), each with its served status."""
+        """Devices ordered by id (after ``after``), each with its served status
+        (``calibrator_state`` is None, as in :meth:`current`)."""
 
     @abc.abstractmethod
     def ping(self) -> bool: ...

@@ -66,13 +66,15 @@ def can_mount() -> bool:
 def fill_disk(folder: Path) -> Path:
     """Write one file in ``folder`` until its filesystem is full; return the file."""
     filler = Path(folder) / "filler"
-    with open(filler, "wb") as fh:
-        try:
-            while True:
-                fh.write(b"\0" * 65536)
-                fh.flush()
-        except OSError:
-            pass
+    # unbuffered: a buffered file re-raised ENOSPC from its final flush in close(), outside
+    # the loop's handler, and the chaos test failed now and then on that
+    with open(filler, "wb", buffering=0) as fh:
+        for size in (65536, 4096, 512, 1):  # fill to the last byte the filesystem gives
+            try:
+                while True:
+                    fh.write(b"\0" * size)
+            except OSError:
+                pass
     return filler
 
 
