@@ -18,14 +18,14 @@ import hashlib
 import json
 import logging
 import os
-import queue
 import sqlite3
 import threading
 import time
 from concurrent.futures import Future
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
+from selfcal_service.group_commit import GroupCommitStore
 from selfcal_service.storage import (
     ConflictError,
     DeviceRecord,
@@ -35,8 +35,6 @@ from selfcal_service.storage import (
     Progress,
     SeqConflict,
     SeqJump,
-    Storage,
-    StorageUnavailable,
     VersionRecord,
 )
 
@@ -124,9 +122,6 @@ _DEVICE_READ_COLS = ", ".join(
     "NULL" if c.strip() == "calibrator_state" else f"d.{c.strip()}" for c in _DEVICE_COLS.split(",")
 )
 
-_STOP = object()
-
-
 def _device(row: tuple) -> DeviceRecord:
     return DeviceRecord(
         device_id=row[0],
@@ -160,21 +155,18 @@ def _dumps(obj: Any) -> str:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False)
 
 
-class SQLiteStore(Storage):
+class SQLiteStore(GroupCommitStore):
     """SQLite WAL storage with a group-committing writer thread."""
 
+    begin_sql = "BEGIN IMMEDIATE"
+
     def __init__(self, path: str, *, synchronous: str = "FULL", group_commit_max_ops: int = 512):
+        super().__init__(group_commit_max_ops)
         self.path = path
         self.synchronous = synchronous
-        self.group_commit_max_ops = group_commit_max_ops
-        self._queue: "queue.SimpleQueue[Any]" = queue.SimpleQueue()
         self._local = threading.local()
-        self._writer: threading.Thread | None = None
         self._conns: list[sqlite3.Connection] = []
         self._conns_lock = threading.Lock()
-        self.commits = 0  # transactions committed (for metrics)
-        self.ops_committed = 0
-        self.last_write_error: tuple[float, str] | None = None
         self._identity: tuple[int, int] | None = None
 
     # ------------------------------------------------------------ connections
@@ -193,6 +185,24 @@ class SQLiteStore(Storage):
         if conn is None:
             conn = self._local.conn = self._connect()
         return conn
+
+    # the writer's hooks (service/group_commit.py)
+    _writer_connect = _connect
+
+    def _close_writer(self, conn: sqlite3.Connection) -> None:
+        try:
+            conn.close()
+        except sqlite3.Error:
+            pass
+        with self._conns_lock:
+            if conn in self._conns:
+                self._conns.remove(conn)
+
+    def _is_storage_error(self, exc: BaseException) -> bool:
+        return isinstance(exc, sqlite3.DatabaseError) and not isinstance(exc, sqlite3.IntegrityError)
+
+    def _probe_op(self, conn: sqlite3.Connection) -> None:
+        conn.execute("INSERT OR REPLACE INTO meta(key, value) VALUES('ready_probe', ?)", (repr(time.time()),))
 
     def open(self) -> None:
         conn = sqlite3.connect(self.path, isolation_level=None, timeout=30.0)
@@ -220,8 +230,7 @@ class SQLiteStore(Storage):
                 log.warning("db_path %s: migrated to schema version %d", self.path, version)
         conn.close()
         self._identity = self._file_identity()
-        self._writer = threading.Thread(target=self._write_loop, name="selfcal-sqlite-writer", daemon=True)
-        self._writer.start()
+        self._start_writer("selfcal-sqlite-writer")
 
     def _file_identity(self) -> tuple[int, int] | None:
         try:
@@ -240,10 +249,7 @@ class SQLiteStore(Storage):
         return None
 
     def close(self) -> None:
-        if self._writer is not None:
-            self._queue.put(_STOP)
-            self._writer.join(timeout=30)
-            self._writer = None
+        self._stop_writer()
         with self._conns_lock:
             for conn in self._conns:
                 try:
@@ -251,109 +257,6 @@ class SQLiteStore(Storage):
                 except sqlite3.Error:  # pragma: no cover - closing anyway
                     pass
             self._conns.clear()
-
-    # ------------------------------------------------------------ writer
-    def _submit(self, fn: Callable[[sqlite3.Connection], Any]) -> Future:
-        fut: Future = Future()
-        if self._writer is None:
-            fut.set_exception(RuntimeError("storage is closed"))
-            return fut
-        self._queue.put((fn, fut))
-        return fut
-
-    def queue_depth(self) -> int:
-        return self._queue.qsize()
-
-    def _write_loop(self) -> None:
-        conn = self._reconnect()  # None: connect again before the next group
-        stop = False
-        while not stop:
-            item = self._queue.get()
-            if item is _STOP:
-                break
-            ops = [item]
-            while len(ops) < self.group_commit_max_ops:
-                try:
-                    nxt = self._queue.get_nowait()
-                except queue.Empty:
-                    break
-                if nxt is _STOP:
-                    stop = True
-                    break
-                ops.append(nxt)
-            results: list[tuple[Future, bool, Any]] = []
-            try:
-                problem = self.identity_problem()
-                if problem:  # never acknowledge into an unlinked or foreign file
-                    raise StorageUnavailable(problem)
-                if conn is None:
-                    conn = self._connect()
-                conn.execute("BEGIN IMMEDIATE")
-                for fn, fut in ops:
-                    conn.execute("SAVEPOINT op")
-                    try:
-                        value = fn(conn)
-                    except Exception as exc:
-                        if isinstance(exc, sqlite3.DatabaseError) and not isinstance(exc, sqlite3.IntegrityError):
-                            raise  # read-only, full, I/O: the whole group fails below
-                        conn.execute("ROLLBACK TO op")  # one bad write must not sink the group
-                        conn.execute("RELEASE op")
-                        results.append((fut, False, exc))
-                    else:
-                        conn.execute("RELEASE op")
-                        results.append((fut, True, value))
-                conn.execute("COMMIT")
-            except Exception as exc:
-                reason = exc if isinstance(exc, StorageUnavailable) else StorageUnavailable(
-                    f"database write failed: {type(exc).__name__}: {exc}")
-                if self.last_write_error is None:  # log once per outage, not per request
-                    log.error("storage unavailable: %s", reason)
-                self.last_write_error = (time.time(), str(reason))
-                if conn is not None:
-                    try:
-                        conn.execute("ROLLBACK")
-                    except sqlite3.Error:
-                        pass
-                    # A fresh connection next time: SQLite may keep a read-only or I/O
-                    # error state on the old one after the fault is fixed.
-                    try:
-                        conn.close()
-                    except sqlite3.Error:
-                        pass
-                    with self._conns_lock:
-                        if conn in self._conns:
-                            self._conns.remove(conn)
-                conn = self._reconnect()
-                for _, fut in ops:
-                    if not fut.done():
-                        fut.set_exception(reason)
-                continue
-            if self.last_write_error is not None:
-                log.warning("storage writable again")
-            self.last_write_error = None
-            self.commits += 1
-            self.ops_committed += len(ops)
-            for fut, ok, value in results:  # only now: the commit is durable
-                if ok:
-                    fut.set_result(value)
-                else:
-                    fut.set_exception(value)
-
-    def _reconnect(self) -> sqlite3.Connection | None:
-        try:
-            return self._connect()
-        except sqlite3.Error:
-            return None  # the file is gone or unreadable; try again with the next write
-
-    def probe_write(self, timeout_s: float = 2.0) -> str | None:
-        def op(conn: sqlite3.Connection) -> None:
-            conn.execute("INSERT OR REPLACE INTO meta(key, value) VALUES('ready_probe', ?)", (repr(time.time()),))
-
-        try:
-            self._submit(op).result(timeout=timeout_s)
-        except Exception as exc:  # noqa: BLE001 - any failure is the answer
-            return str(exc) or type(exc).__name__
-        return None
 
     # ------------------------------------------------------------ ingest
     def submit_batch(self, device_id: str, seq: int, n_samples: int, payload: bytes, received_at: float,
@@ -512,4 +415,4 @@ class SQLiteStore(Storage):
             self._reader().execute("SELECT 1").fetchone()
         except sqlite3.Error:
             return False
-        return self._writer is not None and self._writer.is_alive()
+        return self.writer_alive()
