@@ -50,6 +50,7 @@ from selfcal_service.schemas import (
     decode_binary,
 )
 from selfcal_service.settings import Settings
+from selfcal_service.group_commit import GroupCommitStore
 from selfcal_service.sqlite_store import SQLiteStore
 from selfcal_service.storage import (
     DeviceRecord,
@@ -60,7 +61,7 @@ from selfcal_service.storage import (
     StorageUnavailable,
     VersionRecord,
 )
-from selfcal_service.worker import CalibratorFactory, RefitWorker
+from selfcal_service.worker import CalibratorFactory, LeaseConfig, RefitWorker
 
 log = logging.getLogger("selfcal.service")
 
@@ -263,6 +264,47 @@ def check_admin_calibration(model_name: str, matrix, offset, params: dict | None
         raise FieldError(where, f"implausible calibration: {reason}")
 
 
+def open_store(settings: Settings) -> Storage:
+    """The store named by ``settings.db_path``: a ``postgresql://`` URL, or a SQLite file path."""
+    from selfcal_service.pg_store import PostgresStore, is_postgres_url
+
+    if is_postgres_url(settings.db_path):
+        return PostgresStore(settings.db_path, group_commit_max_ops=settings.group_commit_max_ops)
+    path = settings.db_path.removeprefix("sqlite:///") if settings.db_path.startswith("sqlite:///") else settings.db_path
+    return SQLiteStore(path, synchronous=settings.sqlite_synchronous,
+                       group_commit_max_ops=settings.group_commit_max_ops)
+
+
+def worker_owner_id() -> str:
+    """A unique lease owner id for this process: host, pid and a random suffix."""
+    import os
+    import socket
+    import uuid
+
+    return f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
+
+
+def make_worker(store: Storage, factory: CalibratorFactory, metrics: Metrics, settings: Settings) -> RefitWorker:
+    """The refit worker for ``store``: leasing devices when the database is shared (PostgreSQL)."""
+    from selfcal_service.pg_store import PostgresStore
+
+    lease = None
+    if isinstance(store, PostgresStore):
+        lease = LeaseConfig(owner=worker_owner_id(), ttl_s=settings.lease_ttl_s, poll_s=settings.lease_poll_s)
+        metrics.gauge("selfcal_worker_leases", lambda: len(worker._leased))
+    worker = RefitWorker(
+        store,
+        factory,
+        metrics,
+        threads=settings.worker_threads,
+        max_batches_per_cycle=settings.worker_max_batches_per_cycle,
+        time_reset_gap_s=settings.time_reset_gap_s,
+        reorder_window_s=settings.reorder_window_s,
+        lease=lease,
+    )
+    return worker
+
+
 def get_store(request: Request) -> Storage:
     return request.app.state.store
 
@@ -303,32 +345,28 @@ def create_app(
         # CPU-bound refit threads hold the GIL for up to the switch interval (5 ms by
         # default) before the event loop can answer a GET: shorten it (process-wide).
         sys.setswitchinterval(settings.gil_switch_interval_s)
-        st = store or SQLiteStore(
-            settings.db_path,
-            synchronous=settings.sqlite_synchronous,
-            group_commit_max_ops=settings.group_commit_max_ops,
-        )
+        st = store or open_store(settings)
+        if not settings.refit_in_process and isinstance(st, SQLiteStore):
+            raise InputError("refit_in_process = false needs a PostgreSQL database (SQLite has one process, "
+                             "which must run the refits)")
         st.open()
-        worker = RefitWorker(
-            st,
-            factory,
-            metrics,
-            threads=settings.worker_threads,
-            max_batches_per_cycle=settings.worker_max_batches_per_cycle,
-            time_reset_gap_s=settings.time_reset_gap_s,
-            reorder_window_s=settings.reorder_window_s,
-        )
-        worker.start()
+        worker = make_worker(st, factory, metrics, settings)
+        if settings.refit_in_process:
+            worker.start()
         app.state.store, app.state.worker = st, worker
         metrics.gauge("selfcal_worker_queue_depth", worker.queue_depth)
-        if isinstance(st, SQLiteStore):
+        metrics.gauge("selfcal_backlog_batches", st.backlog)
+        if hasattr(st, "oldest_pending_age_s"):
+            metrics.gauge("selfcal_backlog_oldest_age_seconds", st.oldest_pending_age_s)
+        if isinstance(st, GroupCommitStore):
             metrics.gauge("selfcal_db_write_queue_depth", st.queue_depth)
             metrics.gauge("selfcal_db_commits_total", lambda: st.commits)
             metrics.gauge("selfcal_db_writes_total", lambda: st.ops_committed)
         try:
             yield
         finally:
-            worker.stop()
+            if settings.refit_in_process:
+                worker.stop()
             st.close()
 
     app = FastAPI(

@@ -25,7 +25,9 @@ class Settings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    db_path: str = Field("selfcal.db", description="SQLite database file (WAL mode)")
+    db_path: str = Field(
+        "selfcal.db", description="SQLite database file (WAL mode), or a postgresql://user@host:port/db URL"
+    )
     host: str = Field("127.0.0.1", description="bind address")
     port: int = Field(8000, ge=0, le=65535, description="TCP port (0 = any free port)")
     api_keys: str = Field(
@@ -55,6 +57,13 @@ class Settings(BaseModel):
     max_backlog_batches: int = Field(
         100_000, ge=1, description="/readyz fails above this many stored batches not yet fed",
     )
+    refit_in_process: bool = Field(
+        True, description="run refits in this process (SQLite: always; PostgreSQL: off for pure API processes)"
+    )
+    lease_ttl_s: float = Field(
+        10.0, gt=0.5, le=600, description="PostgreSQL: a refit worker's lease on a device lasts this long unless renewed"
+    )
+    lease_poll_s: float = Field(0.25, gt=0, le=60, description="PostgreSQL: how often a worker looks for work")
     calibrator: str = Field(
         "selfcal.calibrator:OnlineCalibrator",
         description="import path module:Class of the calibrator (tests inject a fake)",

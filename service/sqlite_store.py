@@ -410,6 +410,11 @@ class SQLiteStore(GroupCommitStore):
     def backlog(self) -> int:
         return int(self._reader().execute("SELECT COUNT(*) FROM batches WHERE state = 0").fetchone()[0])
 
+    def oldest_pending_age_s(self) -> float:
+        """Age of the oldest stored batch not yet fed nor rejected (0 if none), seconds."""
+        (oldest,) = self._reader().execute("SELECT MIN(received_at) FROM batches WHERE state = 0").fetchone()
+        return 0.0 if oldest is None else max(0.0, time.time() - oldest)
+
     def ping(self) -> bool:
         try:
             self._reader().execute("SELECT 1").fetchone()

@@ -20,7 +20,9 @@ Invariants every implementation keeps:
   ``processed_seq`` is the highest fed seq.
 * ``commit_progress`` writes the calibrator state, the fed and rejected batches, the
   feed bookkeeping and any newly published versions in **one** transaction, and only
-  if the stored ``processed_seq`` still equals the one the worker started from.
+  if the stored ``processed_seq`` still equals the one the worker started from (and,
+  on a shared database, the state revision and the worker's lease); otherwise it
+  raises :class:`ConflictError` and writes nothing.
 * Version numbers of a device are 1, 2, 3, ... in publication order; ``current_version``
   points at the version served by ``GET /devices/{id}/calibration``.
 """
@@ -79,6 +81,7 @@ class DeviceRecord:
     rejected_batches: int = 0
     rejected_samples: int = 0
     last_rejection: dict[str, Any] | None = None
+    state_rev: int | None = None  # bumped by every commit_progress (PostgreSQL; None on SQLite)
 
 
 @dataclass
@@ -104,6 +107,10 @@ class Progress:
     new_versions: list[NewVersion] = field(default_factory=list)
     fed_seqs: list[int] = field(default_factory=list)
     rejected: list[tuple[int, int, str]] = field(default_factory=list)  # (seq, n_samples, reason)
+    # optimistic checks of a shared database (PostgreSQL): the state this cycle started
+    # from, and the lease the writing worker must still hold (None: not checked)
+    expected_state_rev: int | None = None
+    lease_owner: str | None = None
 
 
 @dataclass

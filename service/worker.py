@@ -22,6 +22,7 @@ import threading
 import time
 import zlib
 from collections import OrderedDict
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -29,6 +30,7 @@ import numpy as np
 from selfcal_service.metrics import Metrics
 from selfcal_service.schemas import Batch, decode_binary
 from selfcal_service.storage import (
+    ConflictError,
     DeviceRecord,
     NewVersion,
     PendingBatch,
@@ -100,6 +102,22 @@ def jsonable(obj: Any) -> Any:
     return str(obj)
 
 
+@dataclass(frozen=True)
+class LeaseConfig:
+    """How a worker leases devices from a shared database (PostgreSQL).
+
+    ``owner``: this worker's unique id; ``ttl_s``: a lease not renewed for this long is
+    free for another worker (so a killed worker's devices move on within it);
+    ``poll_s``: how often to look for devices with pending batches; ``max_devices``:
+    leases held at once.
+    """
+
+    owner: str
+    ttl_s: float = 10.0
+    poll_s: float = 0.25
+    max_devices: int = 256
+
+
 def _shard(device_id: str, n: int) -> int:
     return zlib.crc32(device_id.encode()) % n
 
@@ -124,8 +142,10 @@ class RefitWorker:
         max_batches_per_cycle: int = 256,
         time_reset_gap_s: float = 60.0,
         reorder_window_s: float = 10.0,
+        lease: "LeaseConfig | None" = None,
     ):
         self.store = store
+        self.lease = lease  # shared database: work only on devices leased by this worker
         self.factory = factory
         self.metrics = metrics
         self.max_batches = max_batches_per_cycle
@@ -140,23 +160,39 @@ class RefitWorker:
         self.reorder_window_s = reorder_window_s
         self.busy = 0  # devices being processed right now
         self.cycles = 0
+        self.conflicts = 0  # cycles dropped because another writer changed the device
+        self._wanted: "OrderedDict[str, None]" = OrderedDict()  # ingested here: lease these first
+        self._lease_cond = threading.Condition()
+        self._lease_thread: threading.Thread | None = None
+        self._leased: set[str] = set()
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> None:
         for i, shard in enumerate(self._shards):
             shard.thread = threading.Thread(target=self._loop, args=(shard,), name=f"selfcal-refit-{i}", daemon=True)
             shard.thread.start()
+        if self.lease is not None:  # shared database: devices come from leases
+            self._lease_thread = threading.Thread(target=self._lease_loop, name="selfcal-leases", daemon=True)
+            self._lease_thread.start()
+            return
         for device_id in self.store.pending_devices():  # resume after a restart
-            self.notify(device_id)
+            self._enqueue(device_id)
 
     def stop(self) -> None:
         self._stop.set()
+        with self._lease_cond:
+            self._lease_cond.notify_all()
         for shard in self._shards:
             with shard.cond:
                 shard.cond.notify_all()
         for shard in self._shards:
             if shard.thread is not None:
                 shard.thread.join(timeout=60)
+        if self._lease_thread is not None:
+            self._lease_thread.join(timeout=30)
+        if self.lease is not None:  # hand the devices over now rather than at lease expiry
+            for device_id in list(self._leased):
+                self._release(device_id)
 
     def alive(self) -> int:
         return sum(1 for s in self._shards if s.thread is not None and s.thread.is_alive())
@@ -169,6 +205,14 @@ class RefitWorker:
 
     def notify(self, device_id: str) -> None:
         """A device has new committed batches (cheap; called from the event loop)."""
+        if self.lease is not None:  # lease it first (the lease thread), then work on it
+            with self._lease_cond:
+                self._wanted[device_id] = None
+                self._lease_cond.notify()
+            return
+        self._enqueue(device_id)
+
+    def _enqueue(self, device_id: str) -> None:
         shard = self._shards[_shard(device_id, len(self._shards))]
         with shard.cond:
             if device_id not in shard.pending:
@@ -196,6 +240,12 @@ class RefitWorker:
             try:
                 more = self.process(device_id)
                 backoff_s = 0.5
+            except ConflictError as exc:  # another writer changed the device (shared database)
+                log.info("device %s: %s; cycle dropped", device_id, exc)
+                self.conflicts += 1
+                self.metrics.inc("selfcal_worker_conflicts_total")
+                self._cache.pop(device_id, None)
+                more = False
             except StorageUnavailable as exc:  # a storage fault: no traceback, wait it out
                 if backoff_s == 0.5:
                     log.warning("refits paused: %s", exc)
@@ -214,11 +264,16 @@ class RefitWorker:
                 with shard.cond:
                     self.busy -= 1
             if more:
-                self.notify(device_id)
+                self._enqueue(device_id)
+            elif self.lease is not None:
+                with self._held_lock:
+                    held = device_id in self._held
+                if not held:
+                    self._release(device_id)
 
     def _calibrator(self, rec: DeviceRecord) -> Calibrator:
         cached = self._cache.get(rec.device_id)
-        if cached is not None and cached[0] == rec.processed_seq:
+        if cached is not None and cached[0] == (rec.processed_seq, rec.state_rev):
             return cached[1]
         if rec.calibrator_state:
             return self.factory.restore(rec.calibrator_state)
@@ -307,9 +362,12 @@ class RefitWorker:
                 new_versions=versions,
                 fed_seqs=fed,
                 rejected=rejected,
+                expected_state_rev=rec.state_rev,
+                lease_owner=self.lease.owner if self.lease is not None else None,
             )
             self.store.commit_progress(progress).result()  # durable before caching
-            self._cache[device_id] = (progress.processed_seq, cal)
+            rev = None if rec.state_rev is None else rec.state_rev + 1
+            self._cache[device_id] = ((progress.processed_seq, rev), cal)
             self.cycles += 1
             self.metrics.inc("selfcal_worker_samples_total", samples)
             for _, n, reason in rejected:
@@ -332,7 +390,7 @@ class RefitWorker:
             with self._held_lock:
                 self._held.discard(device_id)
             if not self._stop.is_set():
-                self.notify(device_id)
+                self._enqueue(device_id)
 
         timer = threading.Timer(delay_s, wake)
         timer.daemon = True
@@ -461,6 +519,43 @@ class RefitWorker:
             out.append(NewVersion(status=status, source="refit", calibration=calib, provenance=jsonable(prov)))
         return out
 
+    # ------------------------------------------------------------ leases (shared database)
+    def _lease_loop(self) -> None:
+        """Lease devices with pending batches (ingested here first), renew what we hold."""
+        lease = self.lease
+        assert lease is not None
+        last_renew = 0.0
+        while not self._stop.is_set():
+            with self._lease_cond:
+                if not self._wanted:
+                    self._lease_cond.wait(timeout=lease.poll_s)
+                wanted = list(self._wanted)
+                self._wanted.clear()
+            if self._stop.is_set():
+                return
+            try:
+                now = time.monotonic()
+                if now - last_renew >= lease.ttl_s / 3:
+                    self.store.renew_leases(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
+                    last_renew = now
+                room = max(1, lease.max_devices - len(self._leased))
+                got = self.store.acquire_leases(  # type: ignore[attr-defined]
+                    lease.owner, lease.ttl_s, room, prefer=wanted)
+            except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
+                log.warning("leases: %s", exc)
+                self._stop.wait(lease.poll_s)
+                continue
+            for device_id in got:
+                self._leased.add(device_id)
+                self._enqueue(device_id)
+
+    def _release(self, device_id: str) -> None:
+        self._leased.discard(device_id)
+        try:
+            self.store.release_lease(self.lease.owner, device_id)  # type: ignore[union-attr, attr-defined]
+        except Exception as exc:  # noqa: BLE001 - it expires anyway
+            log.info("device %s: lease not released (%s); it expires", device_id, exc)
+
     # ------------------------------------------------------------ admin
     def publish_admin(
         self, device_id: str, version: NewVersion, seed: dict[str, Any] | None = None, timeout_s: float = 30.0
@@ -472,6 +567,19 @@ class RefitWorker:
         use it as their prior; the calibrator state and the version are written in one
         transaction. A factory seed is then served as the calibrator describes it.
         """
+        for attempt in range(5):  # on a shared database a worker elsewhere may commit first
+            try:
+                return self._publish_admin_once(device_id, version, seed, timeout_s)
+            except ConflictError:
+                if attempt == 4:
+                    raise
+                self._cache.pop(device_id, None)
+                time.sleep(0.05 * (attempt + 1))
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _publish_admin_once(
+        self, device_id: str, version: NewVersion, seed: dict[str, Any] | None, timeout_s: float
+    ) -> int:
         with self.device_lock(device_id):
             rec = self.store.load_device(device_id)
             expected = rec.processed_seq if rec else None
@@ -501,8 +609,10 @@ class RefitWorker:
                 last_refit=rec.last_refit if rec else None,
                 feed_state=rec.feed_state if rec else {},
                 new_versions=[version],
+                expected_state_rev=rec.state_rev if rec else None,
             )
             numbers = self.store.commit_progress(progress).result(timeout=timeout_s)
             if cal is not None:
-                self._cache[device_id] = (expected, cal)
+                rev = rec.state_rev + 1 if rec is not None and rec.state_rev is not None else None
+                self._cache[device_id] = ((expected, rev), cal)
             return numbers[-1]

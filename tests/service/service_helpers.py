@@ -32,6 +32,33 @@ KEY_SPEC = ",".join(
 )
 
 
+def backend() -> str:
+    """The database the service tests run against: ``sqlite`` (default) or ``postgresql``
+    (``SELFCAL_TEST_BACKEND=postgresql``; the session fixture starts a throw-away cluster)."""
+    return os.environ.get("SELFCAL_TEST_BACKEND", "sqlite")
+
+
+def backend_db(path: Path) -> str:
+    """The ``--db`` argument for a test's database file: the path itself on SQLite, or a
+    PostgreSQL database of its own (named from the path, created once) on PostgreSQL."""
+    if backend() != "postgresql":
+        return str(path)
+    import hashlib
+
+    import psycopg
+
+    base = os.environ["SELFCAL_TEST_PG_URL"]
+    name = "t_" + hashlib.sha1(str(Path(path).resolve()).encode()).hexdigest()[:16]
+    with psycopg.connect(base + "/postgres", autocommit=True) as conn:
+        if conn.execute("SELECT 1 FROM pg_database WHERE datname = %s", (name,)).fetchone() is None:
+            conn.execute(f'CREATE DATABASE "{name}"')
+    return f"{base}/{name}"
+
+
+only_sqlite = __import__("pytest").mark.skipif(
+    backend() == "postgresql", reason="SQLite-specific (its file, WAL, schema migration or filesystem faults)")
+
+
 def auth(scope: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {KEYS[scope]}"}
 
@@ -60,6 +87,11 @@ class ServerProcess:
         self.log = self.tmp / "server.log"
 
     @property
+    def db_arg(self) -> str:
+        """What ``--db`` gets: the SQLite path, or (PostgreSQL run) that path's own database."""
+        return backend_db(self.db)
+
+    @property
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
@@ -71,7 +103,7 @@ class ServerProcess:
         if self.calibrator:
             env["SELFCAL_CALIBRATOR"] = self.calibrator
         env.update(self.env)
-        cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", str(self.db), "--port", str(self.port),
+        cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", self.db_arg, "--port", str(self.port),
                "--config", str(self.config), "--log-level", "warning"]
         self._logfh = open(self.log, "ab")
         self.proc = subprocess.Popen(cmd, env=env, stdout=self._logfh, stderr=subprocess.STDOUT, cwd=str(self.tmp))

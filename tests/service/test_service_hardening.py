@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from service_faults import can_chattr, can_mount, chattr, database_files, fill_disk, flip_bit, mount_tmpfs, unmount
-from service_helpers import ServerProcess, batch_json, t_ms_sum
+from service_helpers import ServerProcess, batch_json, only_sqlite, t_ms_sum
 
 from selfcal_service.schemas import BINARY_MEDIA_TYPE, SampleBatchIn
 
@@ -191,6 +191,7 @@ def test_readyz_ok_when_healthy(srv):
 
 
 # ------------------------------------------------------------------ 5. storage faults
+@only_sqlite
 def test_deleted_database_file_is_not_acknowledged_into(tmp_path):
     s = server(tmp_path)
     try:
@@ -228,6 +229,7 @@ def _post_until(c: httpx.Client, device: str, seq: int, want: int, timeout_s: fl
 
 
 @pytest.mark.skipif(not can_chattr(), reason="needs root and chattr on a filesystem with the immutable flag")
+@only_sqlite
 def test_read_only_database_then_recovery_without_restart(tmp_path):
     s = server(tmp_path)
     files = database_files(s.db)
@@ -250,6 +252,7 @@ def test_read_only_database_then_recovery_without_restart(tmp_path):
 
 
 @needs_mount
+@only_sqlite
 def test_full_disk_then_recovery_without_restart(tmp_path, tmpfs):
     s = server(tmp_path, db=tmpfs / "selfcal.db")
     try:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from service_helpers import only_sqlite
 
 from selfcal.errors import InputError
 from selfcal_service.auth import AuthError, KeyRing, parse_api_keys
@@ -145,6 +146,7 @@ INSERT INTO meta VALUES ('schema_version', '1');
 """
 
 
+@only_sqlite
 def test_v1_database_migrates_and_keeps_the_resend_rules(tmp_path):
     """A schema-1 database (batches 0 and 1 stored, 0 fed) opens as schema 2: batch 0 is
     fed, 1 pending; a resend of 1 with its own bytes is a duplicate, with other bytes a

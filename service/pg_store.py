@@ -1,0 +1,433 @@
+"""PostgreSQL implementation of :class:`selfcal_service.storage.Storage` (psycopg 3). All its SQL is here.
+
+Selected by a URL: ``selfcal serve --db postgresql://user@host:port/dbname``. Many API
+processes and refit workers share one database:
+
+* **Writes** go through the same group-committing writer as SQLite
+  (:mod:`selfcal_service.group_commit`), one writer connection per process. PostgreSQL's
+  default ``synchronous_commit=on`` makes each COMMIT durable before a batch is
+  acknowledged. Ops of a group run in device-id order, so two processes' groups take
+  row locks in the same order and cannot deadlock each other.
+* **Idempotent seq across processes.** ``INSERT … ON CONFLICT DO NOTHING`` waits for a
+  concurrent insert of the same ``(device_id, seq)`` and then compares the content
+  hash: duplicate or 409, never a 500.
+* **Leases.** A refit worker owns a device while ``lease_owner`` is its id and
+  ``lease_until`` is in the future (:meth:`acquire_leases`, ``FOR UPDATE SKIP LOCKED``).
+  A killed worker's leases expire and another worker takes its devices.
+  :meth:`commit_progress` writes only if the lease is still held *and* the device's
+  ``processed_seq`` and ``state_rev`` are those the cycle started from, so a worker that
+  lost its lease cannot feed a batch twice or overwrite newer state.
+* **Schema** versions are in ``meta``; ordered migrations run at start under an
+  advisory lock (several processes may start at once).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from concurrent.futures import Future
+from typing import Any
+
+from selfcal_service.group_commit import GroupCommitStore
+from selfcal_service.storage import (
+    ConflictError,
+    DeviceRecord,
+    IngestResult,
+    NewVersion,
+    PendingBatch,
+    Progress,
+    SeqConflict,
+    SeqJump,
+    VersionRecord,
+)
+
+log = logging.getLogger("selfcal.service.postgres")
+
+SCHEMA_VERSION = 1
+_SCHEMA_LOCK = 815_372_001  # pg_advisory_lock key while the schema is created or migrated
+
+_SCHEMA = [
+    "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
+    """CREATE TABLE IF NOT EXISTS devices (
+        device_id         TEXT PRIMARY KEY,
+        created_at        DOUBLE PRECISION NOT NULL,
+        batches_stored    BIGINT NOT NULL DEFAULT 0,
+        processed_seq     BIGINT,
+        samples_processed BIGINT NOT NULL DEFAULT 0,
+        calibrator_state  TEXT,
+        calibrator_status TEXT,
+        last_refit        TEXT,
+        feed_state        TEXT,
+        current_version   INTEGER,
+        updated_at        DOUBLE PRECISION,
+        rejected_batches  BIGINT NOT NULL DEFAULT 0,
+        rejected_samples  BIGINT NOT NULL DEFAULT 0,
+        last_rejection    TEXT,
+        state_rev         BIGINT NOT NULL DEFAULT 0,
+        lease_owner       TEXT,
+        lease_until       DOUBLE PRECISION
+    )""",
+    """CREATE TABLE IF NOT EXISTS batches (
+        device_id   TEXT NOT NULL,
+        seq         BIGINT NOT NULL,
+        n_samples   INTEGER NOT NULL,
+        received_at DOUBLE PRECISION NOT NULL,
+        payload     BYTEA NOT NULL,
+        digest      BYTEA,
+        state       SMALLINT NOT NULL DEFAULT 0,
+        reason      TEXT,
+        PRIMARY KEY (device_id, seq)
+    )""",
+    "CREATE INDEX IF NOT EXISTS batches_pending ON batches (device_id, seq) WHERE state = 0",
+    """CREATE TABLE IF NOT EXISTS versions (
+        device_id   TEXT NOT NULL,
+        version     INTEGER NOT NULL,
+        status      TEXT NOT NULL,
+        source      TEXT NOT NULL,
+        created_at  DOUBLE PRECISION NOT NULL,
+        calibration TEXT NOT NULL,
+        provenance  TEXT NOT NULL,
+        PRIMARY KEY (device_id, version)
+    )""",
+]
+
+#: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
+MIGRATIONS: dict[int, list[str]] = {}
+
+_COLS = [
+    "device_id", "batches_stored", "processed_seq", "samples_processed", "calibrator_state",
+    "calibrator_status", "last_refit", "feed_state", "current_version", "updated_at",
+    "rejected_batches", "rejected_samples", "last_rejection", "state_rev",
+]
+_DEVICE_COLS = ", ".join(f"d.{c}" for c in _COLS)
+_DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in _COLS)  # no state
+_N = len(_COLS)
+_VERSION_COLS = "version, status, source, created_at, calibration, provenance"
+
+
+def _device(row: tuple) -> DeviceRecord:
+    return DeviceRecord(
+        device_id=row[0],
+        batches_stored=row[1],
+        processed_seq=row[2],
+        samples_processed=row[3],
+        calibrator_state=row[4],
+        calibrator_status=row[5],
+        last_refit=json.loads(row[6]) if row[6] else None,
+        feed_state=json.loads(row[7]) if row[7] else {},
+        current_version=row[8],
+        updated_at=row[9],
+        rejected_batches=row[10] or 0,
+        rejected_samples=row[11] or 0,
+        last_rejection=json.loads(row[12]) if row[12] else None,
+        state_rev=row[13],
+    )
+
+
+def _version(row: tuple) -> VersionRecord:
+    return VersionRecord(version=row[0], status=row[1], source=row[2], created_at=row[3],
+                         calibration=json.loads(row[4]), provenance=json.loads(row[5]))
+
+
+def _dumps(obj: Any) -> str:
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False)
+
+
+def is_postgres_url(db: str) -> bool:
+    """True for ``postgresql://…`` / ``postgres://…`` (anything else is a SQLite path)."""
+    return db.startswith(("postgresql://", "postgres://"))
+
+
+class PostgresStore(GroupCommitStore):
+    """PostgreSQL storage: group-committing writer, a connection per reading thread, leases."""
+
+    def __init__(self, url: str, *, group_commit_max_ops: int = 512, connect_timeout_s: float = 10.0):
+        super().__init__(group_commit_max_ops)
+        self.url = url
+        self.connect_timeout_s = connect_timeout_s
+        self._local = threading.local()
+        self._conns: list[Any] = []
+        self._conns_lock = threading.Lock()
+
+    # ------------------------------------------------------------ connections
+    def _connect(self) -> Any:
+        import psycopg
+
+        conn = psycopg.connect(self.url, autocommit=True, connect_timeout=int(max(1, self.connect_timeout_s)))
+        with self._conns_lock:
+            self._conns.append(conn)
+        return conn
+
+    def _reader(self) -> Any:
+        conn = getattr(self._local, "conn", None)
+        if conn is None or conn.closed or conn.broken:
+            conn = self._local.conn = self._connect()
+        return conn
+
+    def _read(self, sql: str, params: tuple | dict = ()) -> list[tuple]:
+        """Run a read on this thread's connection; one reconnect if the server dropped it."""
+        import psycopg
+
+        from selfcal_service.storage import StorageUnavailable
+
+        for attempt in (0, 1):
+            try:
+                return self._reader().execute(sql, params).fetchall()
+            except (psycopg.OperationalError, psycopg.InterfaceError) as exc:
+                self._local.conn = None
+                if attempt:
+                    raise StorageUnavailable(f"database read failed: {type(exc).__name__}: {exc}") from None
+        return []  # pragma: no cover
+
+    _writer_connect = _connect
+
+    def _close_writer(self, conn: Any) -> None:
+        try:
+            conn.close()
+        except Exception:  # noqa: BLE001 - closing a broken connection
+            pass
+        with self._conns_lock:
+            if conn in self._conns:
+                self._conns.remove(conn)
+
+    def _is_storage_error(self, exc: BaseException) -> bool:
+        import psycopg
+
+        return isinstance(exc, (psycopg.OperationalError, psycopg.InterfaceError, psycopg.InternalError))
+
+    def _probe_op(self, conn: Any) -> None:
+        conn.execute("INSERT INTO meta(key, value) VALUES ('ready_probe', %s) "
+                     "ON CONFLICT (key) DO UPDATE SET value = EXCLUDED.value", (repr(time.time()),))
+
+    def open(self) -> None:
+        conn = self._connect()
+        try:
+            conn.execute("SELECT pg_advisory_lock(%s)", (_SCHEMA_LOCK,))
+            try:
+                has_meta = conn.execute("SELECT to_regclass('meta') IS NOT NULL").fetchone()[0]
+                row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() \
+                    if has_meta else None
+                if row is None:
+                    with conn.transaction():
+                        for stmt in _SCHEMA:
+                            conn.execute(stmt)
+                        conn.execute("INSERT INTO meta(key, value) VALUES ('schema_version', %s) "
+                                     "ON CONFLICT (key) DO NOTHING", (str(SCHEMA_VERSION),))
+                else:
+                    version = int(row[0])
+                    if version > SCHEMA_VERSION:
+                        raise RuntimeError(f"database schema version {version} is newer than this service's "
+                                           f"{SCHEMA_VERSION}; upgrade selfcal")
+                    while version < SCHEMA_VERSION:
+                        with conn.transaction():
+                            for stmt in MIGRATIONS[version]:
+                                conn.execute(stmt)
+                            version += 1
+                            conn.execute("UPDATE meta SET value = %s WHERE key = 'schema_version'", (str(version),))
+                        log.warning("database migrated to schema version %d", version)
+            finally:
+                conn.execute("SELECT pg_advisory_unlock(%s)", (_SCHEMA_LOCK,))
+        finally:
+            self._close_writer(conn)
+        self._start_writer("selfcal-postgres-writer")
+
+    def close(self) -> None:
+        self._stop_writer()
+        with self._conns_lock:
+            for conn in self._conns:
+                try:
+                    conn.close()
+                except Exception:  # noqa: BLE001 - closing anyway
+                    pass
+            self._conns.clear()
+
+    def _take_group(self, first: Any) -> tuple[list, bool]:
+        ops, stop = super()._take_group(first)
+        ops.sort(key=lambda item: getattr(item[0], "device_id", ""))  # one lock order for every process
+        return ops, stop
+
+    # ------------------------------------------------------------ ingest
+    def submit_batch(self, device_id: str, seq: int, n_samples: int, payload: bytes, received_at: float,
+                     digest: bytes, max_seq_jump: int) -> Future:
+        def op(conn: Any) -> IngestResult:
+            def existing() -> IngestResult | None:
+                old = conn.execute("SELECT digest FROM batches WHERE device_id = %s AND seq = %s",
+                                   (device_id, seq)).fetchone()
+                if old is None:
+                    return None
+                if old[0] is not None and bytes(old[0]) != digest:
+                    raise SeqConflict(
+                        f"seq {seq} of device {device_id!r} is stored with other content; a resent "
+                        "batch must be identical (a new batch needs a new seq)")
+                return IngestResult(duplicate=True)
+
+            found = existing()
+            if found is not None:
+                return found
+            (top,) = conn.execute("SELECT MAX(seq) FROM batches WHERE device_id = %s", (device_id,)).fetchone()
+            if top is not None and seq > top + max_seq_jump:
+                raise SeqJump(
+                    f"seq {seq} is more than {max_seq_jump} above the highest stored seq {top} of device "
+                    f"{device_id!r} (a corrupt seq would strand every later batch)")
+            inserted = conn.execute(
+                "INSERT INTO batches(device_id, seq, n_samples, received_at, payload, digest, state) "
+                "VALUES (%s, %s, %s, %s, %s, %s, 0) ON CONFLICT (device_id, seq) DO NOTHING RETURNING 1",
+                (device_id, seq, n_samples, received_at, payload, digest),
+            ).fetchone()
+            if inserted is None:  # another process stored this seq meanwhile (now committed)
+                return existing() or IngestResult(duplicate=True)
+            conn.execute(
+                "INSERT INTO devices(device_id, created_at, batches_stored) VALUES (%s, %s, 1) "
+                "ON CONFLICT (device_id) DO UPDATE SET batches_stored = devices.batches_stored + 1",
+                (device_id, received_at),
+            )
+            return IngestResult(duplicate=False)
+
+        op.device_id = device_id  # type: ignore[attr-defined]
+        return self._submit(op)
+
+    # ------------------------------------------------------------ worker
+    def pending_devices(self) -> list[str]:
+        return [r[0] for r in self._read("SELECT DISTINCT device_id FROM batches WHERE state = 0 ORDER BY 1")]
+
+    def load_device(self, device_id: str) -> DeviceRecord | None:
+        rows = self._read(f"SELECT {_DEVICE_COLS} FROM devices d WHERE d.device_id = %s", (device_id,))
+        return _device(rows[0]) if rows else None
+
+    def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:
+        rows = self._read(
+            "SELECT seq, n_samples, received_at, payload FROM batches WHERE device_id = %s AND state = 0 "
+            "ORDER BY seq LIMIT %s", (device_id, limit))
+        return [PendingBatch(r[0], r[1], r[2], bytes(r[3])) for r in rows]
+
+    def commit_progress(self, p: Progress) -> Future:
+        def op(conn: Any) -> list[int]:
+            now = time.time()
+            conn.execute("INSERT INTO devices(device_id, created_at) VALUES (%s, %s) ON CONFLICT DO NOTHING",
+                         (p.device_id, now))
+            row = conn.execute(  # the device row lock serialises publishers of this device
+                "SELECT processed_seq, state_rev, lease_owner, lease_until FROM devices "
+                "WHERE device_id = %s FOR UPDATE", (p.device_id,)).fetchone()
+            processed, rev, owner, until = row
+            if processed != p.expected_processed_seq or (p.expected_state_rev is not None
+                                                         and rev != p.expected_state_rev):
+                raise ConflictError(f"device {p.device_id}: changed under the worker "
+                                    f"(processed_seq {processed}, state_rev {rev})")
+            if p.lease_owner is not None and (owner != p.lease_owner or (until or 0.0) < now):
+                raise ConflictError(f"device {p.device_id}: lease of {p.lease_owner} lost (owner {owner})")
+            numbers = []
+            for v in p.new_versions:
+                (number,) = conn.execute(
+                    "SELECT COALESCE(MAX(version), 0) + 1 FROM versions WHERE device_id = %s", (p.device_id,)
+                ).fetchone()
+                conn.execute(
+                    "INSERT INTO versions(device_id, version, status, source, created_at, calibration, provenance) "
+                    "VALUES (%s, %s, %s, %s, %s, %s, %s)",
+                    (p.device_id, number, v.status, v.source, now, _dumps(v.calibration), _dumps(v.provenance)))
+                numbers.append(number)
+            conn.execute(
+                "UPDATE devices SET processed_seq = %s, samples_processed = samples_processed + %s, "
+                "calibrator_state = %s, calibrator_status = %s, last_refit = %s, feed_state = %s, "
+                "current_version = COALESCE(%s, current_version), updated_at = %s, state_rev = state_rev + 1 "
+                "WHERE device_id = %s",
+                (p.processed_seq, p.samples_added, p.calibrator_state, p.calibrator_status,
+                 None if p.last_refit is None else _dumps(p.last_refit), _dumps(p.feed_state),
+                 numbers[-1] if numbers else None, now, p.device_id))
+            if p.fed_seqs:
+                conn.execute("UPDATE batches SET state = 1 WHERE device_id = %s AND seq = ANY(%s) AND state = 0",
+                             (p.device_id, list(p.fed_seqs)))
+            if p.rejected:
+                with conn.cursor() as cur:
+                    cur.executemany(
+                        "UPDATE batches SET state = 2, reason = %s WHERE device_id = %s AND seq = %s AND state = 0",
+                        [(reason, p.device_id, q) for q, _, reason in p.rejected])
+                q, _, reason = p.rejected[-1]
+                conn.execute(
+                    "UPDATE devices SET rejected_batches = rejected_batches + %s, "
+                    "rejected_samples = rejected_samples + %s, last_rejection = %s WHERE device_id = %s",
+                    (len(p.rejected), sum(r[1] for r in p.rejected),
+                     _dumps({"seq": q, "reason": reason, "at": now}), p.device_id))
+            return numbers
+
+        op.device_id = p.device_id  # type: ignore[attr-defined]
+        return self._submit(op)
+
+    # ------------------------------------------------------------ leases
+    def acquire_leases(self, owner: str, ttl_s: float, limit: int, prefer: list[str] | None = None) -> list[str]:
+        """Lease up to ``limit`` devices with pending batches whose lease is free, expired or ours.
+
+        ``prefer`` (devices just ingested here) go first. Returns the leased ids.
+        """
+        now = time.time()
+        rows = self._read(
+            "UPDATE devices SET lease_owner = %(me)s, lease_until = %(until)s WHERE device_id IN ("
+            " SELECT d.device_id FROM devices d"
+            " WHERE (d.lease_owner IS NULL OR d.lease_until < %(now)s OR d.lease_owner = %(me)s)"
+            " AND EXISTS (SELECT 1 FROM batches b WHERE b.device_id = d.device_id AND b.state = 0)"
+            " ORDER BY (d.device_id = ANY(%(prefer)s)) DESC, d.updated_at NULLS FIRST"
+            " LIMIT %(limit)s FOR UPDATE SKIP LOCKED) RETURNING device_id",
+            {"me": owner, "until": now + ttl_s, "now": now, "prefer": list(prefer or []), "limit": limit})
+        return [r[0] for r in rows]
+
+    def renew_leases(self, owner: str, ttl_s: float) -> int:
+        """Extend every lease ``owner`` holds; returns how many."""
+        rows = self._read("UPDATE devices SET lease_until = %s WHERE lease_owner = %s RETURNING 1",
+                          (time.time() + ttl_s, owner))
+        return len(rows)
+
+    def release_lease(self, owner: str, device_id: str) -> None:
+        """Give a device's lease up (it had nothing left to feed)."""
+        self._read("UPDATE devices SET lease_owner = NULL, lease_until = NULL "
+                   "WHERE device_id = %s AND lease_owner = %s RETURNING 1", (device_id, owner))
+
+    def lease_counts(self) -> dict[str, int]:
+        """Leases held now, by owner (for metrics)."""
+        rows = self._read("SELECT lease_owner, COUNT(*) FROM devices WHERE lease_owner IS NOT NULL "
+                          "AND lease_until >= %s GROUP BY 1", (time.time(),))
+        return {r[0]: int(r[1]) for r in rows}
+
+    # ------------------------------------------------------------ reads
+    def current(self, device_id: str) -> tuple[DeviceRecord, VersionRecord | None] | None:
+        rows = self._read(
+            f"SELECT {_DEVICE_READ_COLS}, v.version, v.status, v.source, v.created_at, v.calibration, "
+            "v.provenance FROM devices d LEFT JOIN versions v "
+            "ON v.device_id = d.device_id AND v.version = d.current_version WHERE d.device_id = %s",
+            (device_id,))
+        if not rows:
+            return None
+        row = rows[0]
+        return _device(row[:_N]), (_version(row[_N:]) if row[_N] is not None else None)
+
+    def history(self, device_id: str) -> list[VersionRecord]:
+        rows = self._read(f"SELECT {_VERSION_COLS} FROM versions WHERE device_id = %s ORDER BY version",
+                          (device_id,))
+        return [_version(r) for r in rows]
+
+    def get_version(self, device_id: str, version: int) -> VersionRecord | None:
+        rows = self._read(f"SELECT {_VERSION_COLS} FROM versions WHERE device_id = %s AND version = %s",
+                          (device_id, version))
+        return _version(rows[0]) if rows else None
+
+    def list_devices(self, after: str | None, limit: int) -> list[tuple[DeviceRecord, str]]:
+        rows = self._read(
+            f"SELECT {_DEVICE_READ_COLS}, COALESCE(v.status, 'uncalibrated') FROM devices d "
+            "LEFT JOIN versions v ON v.device_id = d.device_id AND v.version = d.current_version "
+            "WHERE d.device_id > %s ORDER BY d.device_id LIMIT %s", (after or "", limit))
+        return [(_device(r[:_N]), r[_N]) for r in rows]
+
+    def backlog(self) -> int:
+        return int(self._read("SELECT COUNT(*) FROM batches WHERE state = 0")[0][0])
+
+    def oldest_pending_age_s(self) -> float:
+        """Age of the oldest stored batch not yet fed nor rejected (0 if none), seconds."""
+        (oldest,) = self._read("SELECT MIN(received_at) FROM batches WHERE state = 0")[0]
+        return 0.0 if oldest is None else max(0.0, time.time() - oldest)
+
+    def ping(self) -> bool:
+        try:
+            self._read("SELECT 1")
+        except Exception:  # noqa: BLE001 - any failure is "not ok"
+            return False
+        return self.writer_alive()
