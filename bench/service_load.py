@@ -274,7 +274,7 @@ def main() -> int:
     p.add_argument("--connections", type=int, default=32)
     p.add_argument("--get-hz", type=float, default=100.0)
     p.add_argument("--format", choices=["json", "binary", "both"], default="both")
-    p.add_argument("--workers", type=int, default=1, help="refit worker threads of the server")
+    p.add_argument("--refit-threads", type=int, default=1, help="refit worker threads of the server")
     p.add_argument("--synchronous", choices=["FULL", "NORMAL"], default="FULL")
     p.add_argument("--inflight-devices", type=int, default=2, help="devices of the in-flight phase")
     p.add_argument("--inflight", type=int, default=4, help="requests in flight per device (in-flight phase)")
@@ -298,7 +298,7 @@ def main() -> int:
             env = dict(os.environ, SELFCAL_API_KEYS=f"{KEY}=ingest+read", SELFCAL_SQLITE_SYNCHRONOUS=args.synchronous)
             server = subprocess.Popen(
                 [sys.executable, "-m", "selfcal.cli", "serve", "--db", f"{tmp}/bench.db", "--port", str(port),
-                 "--workers", str(args.workers), "--log-level", "warning"],
+                 "--refit-threads", str(args.refit_threads), "--log-level", "warning"],
                 env=env, cwd=str(REPO), stderr=subprocess.DEVNULL,
             )
             try:

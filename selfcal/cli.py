@@ -24,7 +24,8 @@ COMMANDS = {
     "diagnose": "measured vs simulated: find what the base model misses",
     "simulate": "write a simulated insole recording and its truth",
     "replay": "long-horizon replay of simulated wear, or of a recorded file (--recording), against the truth",
-    "serve": "start the calibration service (FastAPI + SQLite)",
+    "serve": "start the calibration service (FastAPI; SQLite, or PostgreSQL with many processes)",
+    "worker": "a refit worker process for a shared PostgreSQL database",
     "gateway": "run the BLE gateway that forwards insole streams to the service",
     "demo": "the whole system end to end: service, virtual insoles, gateway",
 }

@@ -3,19 +3,21 @@
 uvicorn closes an *idle* keep-alive connection (``timeout_keep_alive``), but once a
 client has sent one byte it waits for the rest of the request head, and for the body,
 for ever. A few hundred clients that send half a request (slowloris) then hold
-sockets, memory and, for a body, a request task each. This subclass adds two deadlines
-per request:
+sockets, memory and, for a body, a request task each. :class:`TimedH11Protocol` adds
+two deadlines per request:
 
 * **head**: the request line and headers must be complete within ``header_timeout_s``
-  of the connection being ready for a request (opened, or the previous response sent);
+  of the connection being opened, or of the first byte of a request on a kept-alive
+  connection;
 * **body**: the body must be complete within ``body_timeout_s`` of its head.
 
 A client that misses a deadline is disconnected (the request task sees
 ``http.disconnect``; nothing is stored, as a body that never completed is never
-parsed). ``on_timeout(kind)`` is called for each, with kind ``header`` or ``body``.
+parsed), and ``on_timeout(kind)`` is called with kind ``header`` or ``body``.
 
-The protocol is chosen with ``uvicorn.run(..., http=make_protocol(settings))``; the
-class keeps uvicorn's parser (h11), so nothing else changes.
+The class is module-level so that uvicorn can hand it to worker processes (they are
+spawned, and their configuration is pickled); :func:`configure` sets the deadlines in
+each process (the app factory calls it). It keeps uvicorn's parser (h11).
 """
 
 from __future__ import annotations
@@ -26,67 +28,74 @@ from typing import Any, Callable
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 
-def make_protocol(
-    header_timeout_s: float, body_timeout_s: float, on_timeout: Callable[[str], None] | None = None
-) -> type:
-    """A ``H11Protocol`` subclass with the two deadlines (seconds); ``on_timeout(kind)`` counts them."""
+class TimedH11Protocol(H11Protocol):
+    """``H11Protocol`` with a request-head and a request-body deadline (see the module)."""
 
-    class TimedH11Protocol(H11Protocol):
-        def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-            super().connection_made(transport)
-            self._deadline: asyncio.TimerHandle | None = None
-            self._deadline_kind = ""
-            self._timed_cycle: Any = None
-            self._arm("header", header_timeout_s, None)  # a connection that never sends is closed too
+    header_timeout_s: float = 10.0
+    body_timeout_s: float = 30.0
+    on_timeout: Callable[[str], None] | None = None
 
-        def connection_lost(self, exc: Exception | None) -> None:
-            self._disarm()
-            super().connection_lost(exc)
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._deadline: asyncio.TimerHandle | None = None
+        self._deadline_kind = ""
+        self._timed_cycle: Any = None
+        self._arm("header", self.header_timeout_s, None)  # a connection that never sends is closed too
 
-        def data_received(self, data: bytes) -> None:
-            # the first byte of a new request on a kept-alive connection starts its head deadline
-            if self._deadline is None and (self.cycle is None or self.cycle.response_complete):
-                self._arm("header", header_timeout_s, self.cycle)
-            super().data_received(data)
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        super().connection_lost(exc)
 
-        def handle_events(self) -> None:
-            super().handle_events()
-            cycle = self.cycle
-            if cycle is None:
-                return
-            if cycle is not self._timed_cycle:  # a new request head is complete
-                self._timed_cycle = cycle
-                if cycle.more_body:
-                    self._arm("body", body_timeout_s, cycle)
-                else:
-                    self._disarm()
-            elif self._deadline_kind == "body" and not cycle.more_body:
-                self._disarm()  # its body is complete
+    def data_received(self, data: bytes) -> None:
+        # the first byte of a new request on a kept-alive connection starts its head deadline
+        if self._deadline is None and (self.cycle is None or self.cycle.response_complete):
+            self._arm("header", self.header_timeout_s, self.cycle)
+        super().data_received(data)
 
-        def on_response_complete(self) -> None:
-            self._disarm()  # idle from here on: uvicorn's keep-alive timeout applies
-            super().on_response_complete()  # may start a pipelined request (handle_events)
+    def handle_events(self) -> None:
+        super().handle_events()
+        cycle = self.cycle
+        if cycle is None:
+            return
+        if cycle is not self._timed_cycle:  # a new request head is complete
+            self._timed_cycle = cycle
+            if cycle.more_body:
+                self._arm("body", self.body_timeout_s, cycle)
+            else:
+                self._disarm()
+        elif self._deadline_kind == "body" and not cycle.more_body:
+            self._disarm()  # its body is complete
 
-        # -------------------------------------------------------------- deadlines
-        def _arm(self, kind: str, delay_s: float, cycle: Any) -> None:
-            self._disarm()
-            self._deadline_kind = kind
-            self._deadline = self.loop.call_later(delay_s, self._late, kind, cycle)
+    def on_response_complete(self) -> None:
+        self._disarm()  # idle from here on: uvicorn's keep-alive timeout applies
+        super().on_response_complete()  # may start a pipelined request (handle_events)
 
-        def _disarm(self) -> None:
-            if self._deadline is not None:
-                self._deadline.cancel()
-                self._deadline = None
-            self._deadline_kind = ""
+    # ------------------------------------------------------------------ deadlines
+    def _arm(self, kind: str, delay_s: float, cycle: Any) -> None:
+        self._disarm()
+        self._deadline_kind = kind
+        self._deadline = self.loop.call_later(delay_s, self._late, kind, cycle)
 
-        def _late(self, kind: str, cycle: Any) -> None:
-            self._deadline, self._deadline_kind = None, ""
-            if self.transport.is_closing() or self.cycle is not cycle:
-                return
-            if kind == "body" and not cycle.more_body:
-                return
-            if on_timeout is not None:
-                on_timeout(kind)
-            self.transport.close()
+    def _disarm(self) -> None:
+        if self._deadline is not None:
+            self._deadline.cancel()
+            self._deadline = None
+        self._deadline_kind = ""
 
-    return TimedH11Protocol
+    def _late(self, kind: str, cycle: Any) -> None:
+        self._deadline, self._deadline_kind = None, ""
+        if self.transport.is_closing() or self.cycle is not cycle:
+            return
+        if kind == "body" and not cycle.more_body:
+            return
+        callback = type(self).on_timeout
+        if callback is not None:
+            callback(kind)
+        self.transport.close()
+
+
+def configure(header_timeout_s: float, body_timeout_s: float, on_timeout: Callable[[str], None] | None) -> None:
+    """Set the deadlines (seconds) and the timeout callback for this process."""
+    TimedH11Protocol.header_timeout_s = float(header_timeout_s)
+    TimedH11Protocol.body_timeout_s = float(body_timeout_s)
+    TimedH11Protocol.on_timeout = staticmethod(on_timeout) if on_timeout is not None else None  # type: ignore[assignment]

@@ -334,6 +334,10 @@ def create_app(
     )
     keys = KeyRing(settings.api_keys)
     metrics = Metrics()
+    from selfcal_service import http_protocol
+
+    http_protocol.configure(settings.header_timeout_s, settings.body_timeout_s,
+                            lambda kind: metrics.inc("selfcal_http_timeouts_total", kind=kind))
     from selfcal.fit import GuardConfig
 
     guard = GuardConfig.from_section((config or {}).get("guard"))
@@ -657,7 +661,8 @@ def create_app(
         worker: RefitWorker = request.app.state.worker
         db = store.ping()
         alive = worker.alive()
-        ok = db and alive == settings.worker_threads
+        expected = settings.worker_threads if settings.refit_in_process else 0  # --no-refit: API only
+        ok = db and alive == expected
         return _json(
             {"status": "ok" if ok else "degraded", "db": db, "workers_alive": alive, "pending_devices": worker.queue_depth()},
             200 if ok else 503,
@@ -678,7 +683,8 @@ def create_app(
         except Exception as exc:  # noqa: BLE001 - readiness reports, never raises
             backlog = -1
             problem = problem or f"cannot read the backlog: {exc}"
-        ready = (problem is None and alive == settings.worker_threads
+        expected = settings.worker_threads if settings.refit_in_process else 0
+        ready = (problem is None and alive == expected
                  and 0 <= backlog <= settings.max_backlog_batches)
         return _json({"ready": ready, "storage_writable": problem is None, "storage_problem": problem,
                       "workers_alive": alive, "backlog_batches": backlog,
@@ -696,3 +702,17 @@ def create_app(
         return PlainTextResponse(metrics.render(), media_type="text/plain; version=0.0.4")
 
     return app
+
+
+#: Environment variable through which ``selfcal serve --workers N`` hands the settings
+#: and config to its API processes (JSON: ``{"settings": {...}, "config": {...}}``).
+SERVE_ENV = "SELFCAL_SERVE_SPEC"
+
+
+def app_from_env() -> FastAPI:
+    """App factory for uvicorn's worker processes: settings and config from ``SELFCAL_SERVE_SPEC``."""
+    import json
+    import os
+
+    spec = json.loads(os.environ[SERVE_ENV])
+    return create_app(Settings.model_validate(spec["settings"]), config=spec["config"])

@@ -1,8 +1,14 @@
-"""``selfcal serve``: start the calibration service (FastAPI + uvicorn + SQLite WAL).
+"""``selfcal serve``: start the calibration service (FastAPI + uvicorn; SQLite or PostgreSQL).
 
 Settings: defaults < ``[service]`` of the config < ``SELFCAL_*`` env < these flags.
 API keys come from ``SELFCAL_API_KEYS`` (or ``[service] api_keys``), never from a flag
 (command lines are visible to every user of the machine).
+
+* ``--db PATH`` (or ``sqlite:///PATH``): the embedded default. One process that also
+  runs the refits.
+* ``--db postgresql://…``: a shared database. ``--workers N`` runs N API processes
+  (uvicorn workers). Each also runs refits on the devices it leases, unless
+  ``--no-refit``; then ``selfcal worker --db URL`` processes do the refits.
 """
 
 from __future__ import annotations
@@ -12,23 +18,33 @@ import sys
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--db", metavar="PATH", required=True, help="SQLite database file (created if missing)")
+    parser.add_argument("--db", metavar="PATH|URL", required=True,
+                        help="SQLite database file (created if missing), or postgresql://user@host:port/dbname")
     parser.add_argument("--host", default=None, help="bind address (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=None, help="TCP port (default 8000; 0 = any free port)")
-    parser.add_argument("--workers", type=int, default=None, help="refit worker threads (default 1)")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="API processes (default 1; more than 1 needs PostgreSQL)")
+    parser.add_argument("--refit-threads", type=int, default=None, help="refit threads per process (default 1)")
+    parser.add_argument("--no-refit", action="store_true",
+                        help="PostgreSQL: API only, refits by `selfcal worker` processes")
     parser.add_argument(
         "--log-level", default=None, choices=["critical", "error", "warning", "info", "debug"], help="log level"
     )
 
 
 def run(args: argparse.Namespace) -> int:
+    import json
+    import os
+
     from selfcal.config import load_config, section
     from selfcal.errors import InputError
 
     try:
         import uvicorn
 
-        from selfcal_service.main import create_app
+        from selfcal_service.http_protocol import TimedH11Protocol
+        from selfcal_service.main import SERVE_ENV, create_app
+        from selfcal_service.pg_store import is_postgres_url
         from selfcal_service.settings import load_settings
     except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
         raise InputError(f"the service needs the 'service' extra (pip install 'selfcal[service]'): {exc}") from exc
@@ -40,30 +56,44 @@ def run(args: argparse.Namespace) -> int:
             "db_path": args.db,
             "host": args.host,
             "port": args.port,
-            "worker_threads": args.workers,
+            "worker_threads": args.refit_threads,
             "log_level": args.log_level,
+            "refit_in_process": False if args.no_refit else None,
         },
     )
-    from selfcal_service.http_protocol import make_protocol
-
-    app = create_app(settings, config=cfg)
-    metrics = app.state.metrics
-    protocol = make_protocol(settings.header_timeout_s, settings.body_timeout_s,
-                             on_timeout=lambda kind: metrics.inc("selfcal_http_timeouts_total", kind=kind))
+    postgres = is_postgres_url(settings.db_path)
+    if args.workers < 1:
+        raise InputError(f"--workers {args.workers}: must be 1 or more")
+    if not postgres and (args.workers > 1 or not settings.refit_in_process):
+        raise InputError("--workers > 1 and --no-refit need a PostgreSQL database (--db postgresql://...): "
+                         "a SQLite file has one writer process, which also runs the refits")
+    if postgres:
+        try:
+            import psycopg  # noqa: F401
+        except ModuleNotFoundError as exc:
+            raise InputError("a postgresql:// database needs the 'postgres' extra "
+                             "(pip install 'selfcal[postgres]')") from exc
+    shown = settings.db_path.split("@")[-1] if postgres else settings.db_path  # no credentials in logs
     print(
-        f"selfcal serve: http://{settings.host}:{settings.port} db={settings.db_path} "
-        f"(synchronous={settings.sqlite_synchronous}, workers={settings.worker_threads})",
+        f"selfcal serve: http://{settings.host}:{settings.port} db={shown} "
+        f"({'postgresql' if postgres else 'sqlite, synchronous=' + settings.sqlite_synchronous}, "
+        f"api processes={args.workers}, refits={'in process' if settings.refit_in_process else 'selfcal worker'})",
         file=sys.stderr,
         flush=True,
     )
-    uvicorn.run(
-        app,
+    common = dict(
         host=settings.host,
         port=settings.port,
         log_level=settings.log_level,
         access_log=settings.access_log,
         timeout_graceful_shutdown=10,
         timeout_keep_alive=settings.keep_alive_timeout_s,
-        http=protocol,
+        http=TimedH11Protocol,
     )
+    if args.workers == 1:
+        uvicorn.run(create_app(settings, config=cfg), **common)
+        return 0
+    # N processes: each builds its app from the same settings (handed over in the environment)
+    os.environ[SERVE_ENV] = json.dumps({"settings": settings.model_dump(), "config": cfg})
+    uvicorn.run("selfcal_service.main:app_from_env", factory=True, workers=args.workers, **common)
     return 0

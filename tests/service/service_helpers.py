@@ -57,6 +57,8 @@ def backend_db(path: Path) -> str:
 
 only_sqlite = __import__("pytest").mark.skipif(
     backend() == "postgresql", reason="SQLite-specific (its file, WAL, schema migration or filesystem faults)")
+only_postgres = __import__("pytest").mark.skipif(
+    backend() != "postgresql", reason="PostgreSQL scale-out (runs in the SELFCAL_TEST_BACKEND=postgresql pass)")
 
 
 def auth(scope: str) -> dict[str, str]:
@@ -72,8 +74,10 @@ def free_port() -> int:
 class ServerProcess:
     """``python -m selfcal.cli serve --db DB --port P`` with a given calibrator."""
 
-    def __init__(self, db: Path, tmp: Path, calibrator: str | None = None, extra_config: str = "", env: dict | None = None):
+    def __init__(self, db: Path, tmp: Path, calibrator: str | None = None, extra_config: str = "", env: dict | None = None,
+                 args: list[str] | None = None):
         self.db = Path(db)
+        self.args = list(args or [])
         self.tmp = Path(tmp)
         self.calibrator = calibrator
         self.config = self.tmp / "test.toml"
@@ -104,7 +108,7 @@ class ServerProcess:
             env["SELFCAL_CALIBRATOR"] = self.calibrator
         env.update(self.env)
         cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", self.db_arg, "--port", str(self.port),
-               "--config", str(self.config), "--log-level", "warning"]
+               "--config", str(self.config), "--log-level", "warning", *self.args]
         self._logfh = open(self.log, "ab")
         self.proc = subprocess.Popen(cmd, env=env, stdout=self._logfh, stderr=subprocess.STDOUT, cwd=str(self.tmp))
         deadline = time.monotonic() + timeout_s
@@ -168,6 +172,51 @@ class ServerProcess:
                         return body
                 time.sleep(0.05)
         raise AssertionError(f"{device_id}: not processed up to seq {seq} in {timeout_s} s; last {body}")
+
+
+class WorkerProcess:
+    """``python -m selfcal.cli worker --db URL`` with the server's config and calibrator."""
+
+    def __init__(self, server: ServerProcess, name: str):
+        self.server = server
+        self.log = server.tmp / f"worker-{name}.log"
+        self.proc: subprocess.Popen | None = None
+
+    def start(self) -> None:
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(REPO), env.get("PYTHONPATH", "")])
+        if self.server.calibrator:
+            env["SELFCAL_CALIBRATOR"] = self.server.calibrator
+        env.update(self.server.env)
+        cmd = [sys.executable, "-m", "selfcal.cli", "worker", "--db", self.server.db_arg,
+               "--config", str(self.server.config), "--log-level", "warning", "--status-every-s", "2"]
+        self._logfh = open(self.log, "ab")
+        self.proc = subprocess.Popen(cmd, env=env, stdout=self._logfh, stderr=subprocess.STDOUT,
+                                     cwd=str(self.server.tmp))
+
+    def kill9(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            os.kill(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(timeout=10)
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.kill9()
+
+
+def child_pids(pid: int) -> list[int]:
+    """The direct children of a process (Linux /proc)."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(x) for x in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return out
 
 
 def batch_json(seq: int, n: int = 20, t0_s: float | None = None, rate_hz: float = 20.0, temp: bool = False,

@@ -1,0 +1,78 @@
+"""``selfcal worker --db postgresql://…``: a refit worker process for a shared database.
+
+It leases devices that have stored batches not yet fed (``FOR UPDATE SKIP LOCKED``,
+with an expiry), feeds them to each device's calibrator and commits the new state and
+versions exactly as the in-process worker of ``selfcal serve`` does. Run as many as
+the refits need, on any machines that reach the database; a killed worker's devices
+are taken over by the others once its leases expire (``[service] lease_ttl_s``).
+SIGTERM or Ctrl-C stops it after the current cycle and hands its leases back.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--db", metavar="URL", required=True, help="postgresql://user@host:port/dbname")
+    parser.add_argument("--threads", type=int, default=None, help="refit threads (default 1)")
+    parser.add_argument("--status-every-s", type=float, default=10.0,
+                        help="print a status line this often (0: never)")
+    parser.add_argument(
+        "--log-level", default=None, choices=["critical", "error", "warning", "info", "debug"], help="log level"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+    import signal
+    import threading
+    import time
+
+    from selfcal.config import load_config, section
+    from selfcal.errors import InputError
+
+    try:
+        from selfcal_service.main import make_worker
+        from selfcal_service.metrics import Metrics
+        from selfcal_service.pg_store import PostgresStore, is_postgres_url
+        from selfcal_service.settings import load_settings
+        from selfcal_service.worker import CalibratorFactory
+    except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
+        raise InputError(f"the worker needs the 'service' and 'postgres' extras: {exc}") from exc
+
+    if not is_postgres_url(args.db):
+        raise InputError(f"--db {args.db}: a refit worker needs a shared postgresql:// database "
+                         "(with a SQLite file, `selfcal serve` runs the refits itself)")
+    cfg = load_config(args.config)
+    settings = load_settings(section(cfg, "service"), overrides={
+        "db_path": args.db, "worker_threads": args.threads, "log_level": args.log_level})
+    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    cal_config = {k: v for k, v in cfg.items() if k not in ("service", "gateway")}
+    factory = CalibratorFactory(settings.calibrator, config=cal_config, model=settings.calibrator_model)
+    store = PostgresStore(settings.db_path, group_commit_max_ops=settings.group_commit_max_ops)
+    try:
+        store.open()
+    except Exception as exc:  # noqa: BLE001 - unreachable database: one clear line
+        raise InputError(f"--db: cannot open the database ({type(exc).__name__}: {exc})") from None
+    metrics = Metrics()
+    worker = make_worker(store, factory, metrics, settings)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    worker.start()
+    print(f"selfcal worker {worker.lease.owner}: db={settings.db_path.split('@')[-1]}, "
+          f"threads={settings.worker_threads}, lease {settings.lease_ttl_s:g} s", file=sys.stderr, flush=True)
+    t0 = time.monotonic()
+    try:
+        while not stop.wait(args.status_every_s if args.status_every_s > 0 else 3600):
+            if args.status_every_s > 0:
+                print(f"selfcal worker: {time.monotonic() - t0:7.0f} s, {worker.cycles} cycles, "
+                      f"{metrics.get('selfcal_worker_samples_total'):.0f} samples fed, "
+                      f"{len(worker._leased)} devices leased, backlog {store.backlog()} batches, "
+                      f"{worker.conflicts} conflicts", file=sys.stderr, flush=True)
+    finally:
+        worker.stop()
+        store.close()
+    return 0
