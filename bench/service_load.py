@@ -170,53 +170,54 @@ async def load_main(args) -> None:
                 lat.append(time.perf_counter() - t0)
             await asyncio.sleep(1.0 / args.get_hz)
 
-    # ---- phase 1: idle (two known devices, nothing else running)
-    ids = [f"inflight-{d}" for d in range(args.inflight_devices)]
-    nb = args.inflight_batch
-    next_seq = {i: 0 for i in ids}
-    c0 = Conn(host, port)
-    for i in ids:
-        body, ctype = encode(args.format, 0, np.arange(nb) / RATE_HZ, stream[:nb])
-        await c0.request("POST", f"/devices/{i}/samples", body, ctype)
-        next_seq[i] = 1
-    await asyncio.sleep(1.0)
-    lat: list[float] = []
-    await probe_ids(ids, lat, time.monotonic() + args.step_s)
-    print(json.dumps({"phase": "idle", "devices": 0, "in_flight": 0, "req_per_s": 0, "errors": 0,
-                      **summary(lat)}), flush=True)
+    if args.inflight_devices > 0:  # phases 1 and 2 (--inflight-devices 0 skips them)
+        # ---- phase 1: idle (two known devices, nothing else running)
+        ids = [f"inflight-{d}" for d in range(args.inflight_devices)]
+        nb = args.inflight_batch
+        next_seq = {i: 0 for i in ids}
+        c0 = Conn(host, port)
+        for i in ids:
+            body, ctype = encode(args.format, 0, np.arange(nb) / RATE_HZ, stream[:nb])
+            await c0.request("POST", f"/devices/{i}/samples", body, ctype)
+            next_seq[i] = 1
+        await asyncio.sleep(1.0)
+        lat: list[float] = []
+        await probe_ids(ids, lat, time.monotonic() + args.step_s)
+        print(json.dumps({"phase": "idle", "devices": 0, "in_flight": 0, "req_per_s": 0, "errors": 0,
+                          **summary(lat)}), flush=True)
 
-    # ---- phase 2: a few devices, each with K requests in flight (closed loop, paced)
-    stats = {"acked": 0, "errors": 0, "sent": 0}
+        # ---- phase 2: a few devices, each with K requests in flight (closed loop, paced)
+        stats = {"acked": 0, "errors": 0, "sent": 0}
 
-    async def inflight_sender(dev: str, k: int, stop: float):
-        conn = Conn(host, port)
-        period = args.inflight_devices * args.inflight / args.inflight_rate
-        nxt = time.monotonic() + k * period / args.inflight
-        while time.monotonic() < stop:
-            s = next_seq[dev]
-            next_seq[dev] += 1
-            t = s * nb / RATE_HZ + np.arange(nb) / RATE_HZ
-            c = (s * nb) % (len(stream) - nb)
-            body, ctype = encode(args.format, s, t, stream[c: c + nb])
-            try:
-                status, _ = await conn.request("POST", f"/devices/{dev}/samples", body, ctype)
-            except (OSError, asyncio.IncompleteReadError):
-                status, conn = 0, Conn(host, port)
-            stats["sent"] += 1
-            stats["acked" if status == 200 else "errors"] += 1
-            nxt += period
-            await asyncio.sleep(max(0.0, nxt - time.monotonic()))
+        async def inflight_sender(dev: str, k: int, stop: float):
+            conn = Conn(host, port)
+            period = args.inflight_devices * args.inflight / args.inflight_rate
+            nxt = time.monotonic() + k * period / args.inflight
+            while time.monotonic() < stop:
+                s = next_seq[dev]
+                next_seq[dev] += 1
+                t = s * nb / RATE_HZ + np.arange(nb) / RATE_HZ
+                c = (s * nb) % (len(stream) - nb)
+                body, ctype = encode(args.format, s, t, stream[c: c + nb])
+                try:
+                    status, _ = await conn.request("POST", f"/devices/{dev}/samples", body, ctype)
+                except (OSError, asyncio.IncompleteReadError):
+                    status, conn = 0, Conn(host, port)
+                stats["sent"] += 1
+                stats["acked" if status == 200 else "errors"] += 1
+                nxt += period
+                await asyncio.sleep(max(0.0, nxt - time.monotonic()))
 
-    stop = time.monotonic() + args.warmup_s + args.step_s
-    tasks = [asyncio.create_task(inflight_sender(d, k, stop)) for d in ids for k in range(args.inflight)]
-    await asyncio.sleep(args.warmup_s)
-    lat = []
-    a0, e0, t0 = stats["acked"], stats["errors"], time.monotonic()
-    await probe_ids(ids, lat, stop)
-    a1, e1, t1 = stats["acked"], stats["errors"], time.monotonic()
-    await asyncio.gather(*tasks)
-    print(json.dumps({"phase": "in-flight", "devices": args.inflight_devices, "in_flight": args.inflight,
-                      "req_per_s": round((a1 - a0) / (t1 - t0), 1), "errors": e1 - e0, **summary(lat)}), flush=True)
+        stop = time.monotonic() + args.warmup_s + args.step_s
+        tasks = [asyncio.create_task(inflight_sender(d, k, stop)) for d in ids for k in range(args.inflight)]
+        await asyncio.sleep(args.warmup_s)
+        lat = []
+        a0, e0, t0 = stats["acked"], stats["errors"], time.monotonic()
+        await probe_ids(ids, lat, stop)
+        a1, e1, t1 = stats["acked"], stats["errors"], time.monotonic()
+        await asyncio.gather(*tasks)
+        print(json.dumps({"phase": "in-flight", "devices": args.inflight_devices, "in_flight": args.inflight,
+                          "req_per_s": round((a1 - a0) / (t1 - t0), 1), "errors": e1 - e0, **summary(lat)}), flush=True)
     if args.devices == "none":
         return
 

@@ -23,6 +23,7 @@ each process (the app factory calls it). It keeps uvicorn's parser (h11).
 from __future__ import annotations
 
 import asyncio
+import socket
 from typing import Any, Callable
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -37,6 +38,15 @@ class TimedH11Protocol(H11Protocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        # asyncio sets TCP_NODELAY only on sockets whose proto is IPPROTO_TCP; the listening
+        # socket uvicorn hands to its worker processes comes back with proto 0, so without
+        # this each response's body waited ~40 ms for the client's delayed ACK (Nagle)
+        sock = transport.get_extra_info("socket")
+        if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
+            try:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            except OSError:
+                pass
         self._deadline: asyncio.TimerHandle | None = None
         self._deadline_kind = ""
         self._timed_cycle: Any = None

@@ -218,3 +218,45 @@ def test_plan_a_batch_the_calibrator_refused_leaves_no_gap():
     """seq 7 was refused by the calibrator (6 is the highest fed): 8 is fed at once."""
     take, late, held = _planner(10.0)._plan(_device(6, handled_seq=7), [_pending(8, 99.9)], 100.0)
     assert [r.seq for r in take] == [8] and not held and not late
+
+
+def test_protocol_sets_tcp_nodelay_even_on_a_socket_without_proto():
+    """uvicorn's worker processes get the listening socket back with proto 0, and asyncio
+    then skips TCP_NODELAY: each response body waited ~40 ms for a delayed ACK."""
+    import asyncio
+    import socket
+
+    from selfcal_service.http_protocol import TimedH11Protocol
+
+    srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)  # as uvicorn's bind_socket makes it: proto 0
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(1)
+    cli = socket.create_connection(srv.getsockname())
+    shared, _ = srv.accept()  # an accepted socket inherits proto 0
+    assert shared.proto == 0 and shared.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) == 0
+
+    class Transport:
+        def get_extra_info(self, name, default=None):
+            return {"socket": shared, "sockname": ("127.0.0.1", 1), "peername": ("127.0.0.1", 2)}.get(name, default)
+
+        def is_closing(self):
+            return False
+
+        def close(self):
+            pass
+
+    class Config:
+        pass
+
+    loop = asyncio.new_event_loop()
+    try:
+        proto = TimedH11Protocol.__new__(TimedH11Protocol)
+        # only what connection_made touches in H11Protocol
+        proto.connections, proto.loop, proto.logger = set(), loop, __import__("logging").getLogger("t")
+        TimedH11Protocol.connection_made(proto, Transport())
+        assert shared.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) == 1
+        proto._disarm()
+    finally:
+        loop.close()
+        for s in (shared, cli, srv):
+            s.close()

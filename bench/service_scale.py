@@ -1,0 +1,174 @@
+"""Scale-out benchmark: the service on PostgreSQL with 1, 2 and 4 API processes, SQLite beside it.
+
+In one run, on loopback: for each configuration a fresh database and a real
+``selfcal serve`` (PostgreSQL: ``--workers N --no-refit`` plus ``--refit-workers``
+``selfcal worker`` processes; SQLite: the single embedded process), then the load
+process of ``bench/service_load.py`` (N insoles at 20 Hz, open loop, 20-s batches,
+32 keep-alive connections, a GET prober at 100 Hz). It prints samples/s acknowledged,
+GET p50/p99, and the refit backlog (age of the oldest batch not yet fed) sampled from
+``/metrics`` every 2 s, then a projection of the machines needed for 100 000 insoles
+from the measured per-core figures.
+
+    python bench/service_scale.py                                  # 10 000 devices, 20-s batches
+    python bench/service_scale.py --devices 2000 --step-s 10 --procs 1,2
+
+The PostgreSQL server is a throw-away cluster (tests/pg_cluster.py; scripts/postgres.sh
+installs the binaries). Everything shares this machine's cores: the figures are what
+this machine does, not what a cluster of machines would do; the projection says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "tests"))
+KEY = "bench-key-0123456789"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_up(port: int, timeout_s: float = 90.0) -> None:
+    import httpx
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError(f"server on port {port} did not come up")
+
+
+def metrics(port: int) -> dict[str, float]:
+    import httpx
+
+    text = httpx.get(f"http://127.0.0.1:{port}/metrics", headers={"Authorization": f"Bearer {KEY}"}, timeout=30).text
+    out: dict[str, float] = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, _, value = line.rpartition(" ")
+            out[name] = float(value)
+    return out
+
+
+def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dict:
+    port = free_port()
+    env = dict(os.environ, SELFCAL_API_KEYS=f"{KEY}=ingest+read")
+    cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", db, "--port", str(port), "--log-level", "warning"]
+    if db.startswith("postgresql"):
+        cmd += ["--workers", str(procs), "--no-refit"]
+    server = subprocess.Popen(cmd, env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
+    workers = [subprocess.Popen([sys.executable, "-m", "selfcal.cli", "worker", "--db", db, "--status-every-s", "0",
+                                 "--log-level", "warning"], env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
+               for _ in range(refit_workers if db.startswith("postgresql") else 0)]
+    backlog: list[tuple[float, float, float]] = []  # (t, oldest age s, batches)
+    stop = threading.Event()
+    try:
+        wait_up(port)
+        t0 = time.monotonic()
+
+        def sample() -> None:
+            while not stop.wait(2.0):
+                try:
+                    m = metrics(port)
+                    backlog.append((time.monotonic() - t0, m.get("selfcal_backlog_oldest_age_seconds", float("nan")),
+                                    m.get("selfcal_backlog_batches", float("nan"))))
+                except Exception:  # noqa: BLE001 - a sample missed under load
+                    pass
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        load = subprocess.run(
+            [sys.executable, str(REPO / "bench" / "service_load.py"), "--load-only", "--port", str(port),
+             "--devices", str(args.devices), "--batch-s", str(args.batch_s), "--step-s", str(args.step_s),
+             "--warmup-s", str(args.warmup_s), "--connections", str(args.connections), "--get-hz", "100",
+             "--format", args.format, "--inflight-devices", "0", "--seed", "7"],
+            capture_output=True, text=True, timeout=900)
+        stop.set()
+        rows = [json.loads(line) for line in load.stdout.splitlines() if line.startswith("{")]
+        if not rows:
+            raise RuntimeError(f"{label}: the load process printed nothing: {load.stderr[-1000:]}")
+        r = rows[-1]
+        r.update(label=label, procs=procs, refit_workers=len(workers), backlog=backlog)
+        return r
+    finally:
+        stop.set()
+        for p in [server, *workers]:
+            p.send_signal(signal.SIGTERM)
+        for p in [server, *workers]:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--devices", type=int, default=10_000)
+    ap.add_argument("--batch-s", type=float, default=20.0, help="seconds of samples per batch (400 at 20 Hz)")
+    ap.add_argument("--step-s", type=float, default=20.0, help="measured seconds per configuration")
+    ap.add_argument("--warmup-s", type=float, default=5.0)
+    ap.add_argument("--connections", type=int, default=32)
+    ap.add_argument("--procs", default="1,2,4", help="API process counts on PostgreSQL")
+    ap.add_argument("--refit-workers", type=int, default=1, help="selfcal worker processes on PostgreSQL")
+    ap.add_argument("--format", choices=["json", "binary"], default="binary")
+    ap.add_argument("--no-sqlite", action="store_true")
+    args = ap.parse_args()
+
+    from pg_cluster import PgCluster, unavailable
+
+    why = unavailable()
+    if why:
+        print(f"PostgreSQL unavailable: {why}", file=sys.stderr)
+        return 1
+    print(f"selfcal service scale-out: {args.devices} insoles x 20 Hz, {args.batch_s:g}-s batches "
+          f"({args.devices * 20:,} samples/s offered, {args.devices / args.batch_s:.0f} req/s), "
+          f"{args.format} batches, {os.cpu_count()} CPUs shared by everything", flush=True)
+    results = []
+    with PgCluster(max_connections=200) as pg, tempfile.TemporaryDirectory(prefix="selfcal-scale-") as tmp:
+        configs = [] if args.no_sqlite else [("sqlite, 1 process (embedded refits)", f"{tmp}/scale.db", 1)]
+        for n in [int(x) for x in args.procs.split(",")]:
+            configs.append((f"postgresql, {n} API + {args.refit_workers} worker",
+                            pg.create_database(f"scale_{n}"), n))
+        for label, db, n in configs:
+            r = run_config(label, db, n, args.refit_workers, args)
+            results.append(r)
+            ages = [a for _, a, _ in r["backlog"] if a == a]
+            print(f"{label:<38} acked {r['sustained_sps']:>8,.0f} samples/s ({r['req_per_s']:.0f} req/s)  "
+                  f"GET p50 {r['get_p50_ms']:6.2f} ms  p99 {r['get_p99_ms']:7.2f} ms  errors {r['errors']}  "
+                  f"oldest unfed batch: max {max(ages, default=float('nan')):.1f} s, "
+                  f"last {ages[-1] if ages else float('nan'):.1f} s", flush=True)
+            print("    backlog over time (s: oldest age s / batches): " + ", ".join(
+                f"{t:.0f}: {a:.1f}/{b:.0f}" for t, a, b in r["backlog"]), flush=True)
+    # projection from the best measured per-process ingest rate
+    best = max(results, key=lambda r: r["sustained_sps"] / max(1, r["procs"]))
+    per_proc = best["sustained_sps"] / max(1, best["procs"])
+    need_procs = 2_000_000 / max(per_proc, 1)
+    print(f"\nprojection for 100 000 insoles (2 000 000 samples/s at {args.batch_s:g}-s batches): "
+          f"{per_proc:,.0f} samples/s per API process measured here ({best['label']}) -> about "
+          f"{need_procs:.0f} API processes (cores) for ingest alone, plus refit workers sized by the "
+          f"backlog figures above. These processes shared 2 cores with the load generator and PostgreSQL, "
+          f"so the per-core figure is a floor.")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
