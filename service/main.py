@@ -27,6 +27,9 @@ from starlette.responses import PlainTextResponse, Response
 
 from selfcal.errors import InputError
 from selfcal_service.auth import AuthError, KeyRing
+from selfcal_service.logs import device_id as device_id_var
+from selfcal_service.logs import device_of_path, new_request_id
+from selfcal_service.logs import request_id as request_id_var
 from selfcal_service.metrics import Metrics
 from selfcal_service.schemas import (
     BINARY_MEDIA_TYPE,
@@ -333,7 +336,7 @@ def create_app(
         settings.calibrator, config=cal_config, model=settings.calibrator_model
     )
     keys = KeyRing(settings.api_keys)
-    metrics = Metrics()
+    metrics = Metrics(settings.metrics_dir or None)
     from selfcal_service import http_protocol
 
     http_protocol.configure(settings.header_timeout_s, settings.body_timeout_s,
@@ -449,11 +452,17 @@ def create_app(
             t0 = time.perf_counter()
             status = [500]
             started = [False]
+            rid = new_request_id(next((v.decode("latin-1") for k, v in scope.get("headers", ())
+                                       if k == b"x-request-id"), None))
+            request_id_var.set(rid)  # this request's task only: the logs carry both ids
+            device_id_var.set(device_of_path(scope.get("path", "")))
 
             async def send_wrapped(message):
                 if message["type"] == "http.response.start":
                     status[0] = message["status"]
                     started[0] = True
+                    message = dict(message, headers=[*message.get("headers", []),
+                                                     (b"x-request-id", rid.encode("latin-1"))])
                 await send(message)
 
             try:
@@ -464,7 +473,8 @@ def create_app(
                 log.exception("unhandled error on %s %s", scope.get("method", ""), scope.get("path", ""))
                 metrics.inc("selfcal_http_internal_errors_total")
                 status[0] = 500
-                await _error(500, "internal_error", "internal error (see the server log)")(scope, receive, send)
+                await _error(500, "internal_error", f"internal error (request id {rid}; see the server log)")(
+                    scope, receive, send_wrapped)
             finally:
                 route = scope.get("route")
                 metrics.observe(

@@ -1,8 +1,18 @@
-"""Prometheus text-format metrics without a client library (counters, gauges, histograms)."""
+"""Prometheus text-format metrics without a client library (counters, gauges, histograms).
+
+With several API processes (``selfcal serve --workers N``) a scrape reaches one of them.
+Each process then also writes its counters and histograms to ``<shared_dir>/<pid>.json``
+about once a second, and :meth:`Metrics.render` adds up every process's file (a dead
+process's last file stays, so counters never go backwards). Gauges are the answering
+process's own, except those read from the shared database (backlog), which are global.
+"""
 
 from __future__ import annotations
 
+import json
+import os
 import threading
+from pathlib import Path
 from typing import Callable
 
 #: Request-latency histogram buckets (s).
@@ -45,11 +55,62 @@ class Metrics:
         "selfcal_http_request_duration_seconds": ("histogram", "request latency by route and status class"),
     }
 
-    def __init__(self) -> None:
+    def __init__(self, shared_dir: str | Path | None = None) -> None:
         self._lock = threading.Lock()
         self._counters: dict[tuple[str, tuple[tuple[str, str], ...]], float] = {}
         self._hist: dict[tuple[str, tuple[tuple[str, str], ...]], list[float]] = {}
         self._gauges: dict[str, Callable[[], float]] = {}
+        self.shared_dir = Path(shared_dir) if shared_dir else None
+        if self.shared_dir is not None:
+            self.shared_dir.mkdir(parents=True, exist_ok=True)
+            threading.Thread(target=self._publish_loop, name="selfcal-metrics", daemon=True).start()
+
+    # ------------------------------------------------------------ several processes
+    def _snapshot(self) -> dict:
+        with self._lock:
+            return {"counters": [[k[0], list(k[1]), v] for k, v in self._counters.items()],
+                    "hist": [[k[0], list(k[1]), v] for k, v in self._hist.items()]}
+
+    def publish(self) -> None:
+        """Write this process's counters and histograms to the shared folder (atomically)."""
+        if self.shared_dir is None:
+            return
+        path = self.shared_dir / f"{os.getpid()}.json"
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self._snapshot()))
+        os.replace(tmp, path)
+
+    def _publish_loop(self) -> None:
+        stop = threading.Event()
+        while not stop.wait(1.0):
+            try:
+                self.publish()
+            except OSError:  # the folder went away (shutdown): nothing to share any more
+                return
+
+    def _merged(self) -> tuple[dict, dict]:
+        """Counters and histograms of this process plus every other process's last file."""
+        with self._lock:
+            counters = dict(self._counters)
+            hist = {k: list(v) for k, v in self._hist.items()}
+        if self.shared_dir is None:
+            return counters, hist
+        own = f"{os.getpid()}.json"
+        for f in self.shared_dir.glob("*.json"):
+            if f.name == own:
+                continue
+            try:
+                other = json.loads(f.read_text())
+            except (OSError, ValueError):
+                continue  # being replaced right now: its next version counts next time
+            for name, labels, value in other["counters"]:
+                key = (name, tuple(tuple(x) for x in labels))
+                counters[key] = counters.get(key, 0.0) + value
+            for name, labels, values in other["hist"]:
+                key = (name, tuple(tuple(x) for x in labels))
+                mine = hist.setdefault(key, [0.0] * len(values))
+                hist[key] = [a + b for a, b in zip(mine, values)]
+        return counters, hist
 
     def inc(self, name: str, value: float = 1.0, **labels: str) -> None:
         key = (name, tuple(sorted(labels.items())))
@@ -77,9 +138,7 @@ class Metrics:
 
     def render(self) -> str:
         lines: list[str] = []
-        with self._lock:
-            counters = dict(self._counters)
-            hist = {k: list(v) for k, v in self._hist.items()}
+        counters, hist = self._merged()
         for name, (kind, help_text) in self.HELP.items():
             lines.append(f"# HELP {name} {help_text}")
             lines.append(f"# TYPE {name} {kind}")

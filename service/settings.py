@@ -77,8 +77,15 @@ class Settings(BaseModel):
     )
     body_timeout_s: float = Field(30.0, gt=0, le=3600, description="a request's body must arrive within this")
     keep_alive_timeout_s: int = Field(5, ge=1, le=600, description="an idle keep-alive connection is closed after this")
+    metrics_dir: str = Field(
+        "", description="a folder shared by this machine's API processes: /metrics adds up all of them "
+        "(serve --workers N sets one)"
+    )
     log_level: Literal["critical", "error", "warning", "info", "debug"] = "info"
     access_log: bool = False
+    log_format: Literal["text", "json"] = Field(
+        "text", description="json: one JSON object a line, with request_id and device_id"
+    )
 
     @field_validator("api_keys")
     @classmethod

@@ -27,6 +27,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from selfcal_service.logs import device_id as device_id_var
 from selfcal_service.metrics import Metrics
 from selfcal_service.schemas import Batch, decode_binary
 from selfcal_service.storage import (
@@ -318,6 +319,13 @@ class RefitWorker:
 
     def process(self, device_id: str) -> bool:
         """One cycle for one device; returns True if batches remain."""
+        token = device_id_var.set(device_id)  # the cycle's log lines carry the device
+        try:
+            return self._process(device_id)
+        finally:
+            device_id_var.reset(token)
+
+    def _process(self, device_id: str) -> bool:
         with self.device_lock(device_id):
             rec = self.store.load_device(device_id)
             if rec is None:

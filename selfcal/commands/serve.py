@@ -27,6 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--refit-threads", type=int, default=None, help="refit threads per process (default 1)")
     parser.add_argument("--no-refit", action="store_true",
                         help="PostgreSQL: API only, refits by `selfcal worker` processes")
+    parser.add_argument("--log-format", default=None, choices=["text", "json"],
+                        help="json: structured logs, one object a line, with request and device ids")
     parser.add_argument(
         "--log-level", default=None, choices=["critical", "error", "warning", "info", "debug"], help="log level"
     )
@@ -43,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
         import uvicorn
 
         from selfcal_service.http_protocol import TimedH11Protocol
+        from selfcal_service.logs import uvicorn_log_config
         from selfcal_service.main import SERVE_ENV, create_app
         from selfcal_service.pg_store import is_postgres_url
         from selfcal_service.settings import load_settings
@@ -58,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
             "port": args.port,
             "worker_threads": args.refit_threads,
             "log_level": args.log_level,
+            "log_format": args.log_format,
             "refit_in_process": False if args.no_refit else None,
         },
     )
@@ -90,10 +94,23 @@ def run(args: argparse.Namespace) -> int:
         timeout_keep_alive=settings.keep_alive_timeout_s,
         http=TimedH11Protocol,
     )
+    log_config = uvicorn_log_config(settings.log_level, settings.log_format)
+    if log_config is not None:
+        common["log_config"] = log_config
     if args.workers == 1:
         uvicorn.run(create_app(settings, config=cfg), **common)
         return 0
-    # N processes: each builds its app from the same settings (handed over in the environment)
-    os.environ[SERVE_ENV] = json.dumps({"settings": settings.model_dump(), "config": cfg})
-    uvicorn.run("selfcal_service.main:app_from_env", factory=True, workers=args.workers, **common)
+    # N processes: each builds its app from the same settings (handed over in the environment);
+    # their metrics meet in a shared folder, so a scrape of any process counts them all
+    import shutil
+    import tempfile
+
+    shared = settings.metrics_dir or tempfile.mkdtemp(prefix="selfcal-metrics-")
+    spec = {"settings": {**settings.model_dump(), "metrics_dir": shared}, "config": cfg}
+    os.environ[SERVE_ENV] = json.dumps(spec)
+    try:
+        uvicorn.run("selfcal_service.main:app_from_env", factory=True, workers=args.workers, **common)
+    finally:
+        if not settings.metrics_dir:
+            shutil.rmtree(shared, ignore_errors=True)
     return 0

@@ -19,6 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None, help="refit threads (default 1)")
     parser.add_argument("--status-every-s", type=float, default=10.0,
                         help="print a status line this often (0: never)")
+    parser.add_argument("--log-format", default=None, choices=["text", "json"], help="json: structured logs")
     parser.add_argument(
         "--log-level", default=None, choices=["critical", "error", "warning", "info", "debug"], help="log level"
     )
@@ -47,8 +48,16 @@ def run(args: argparse.Namespace) -> int:
                          "(with a SQLite file, `selfcal serve` runs the refits itself)")
     cfg = load_config(args.config)
     settings = load_settings(section(cfg, "service"), overrides={
-        "db_path": args.db, "worker_threads": args.threads, "log_level": args.log_level})
-    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        "db_path": args.db, "worker_threads": args.threads, "log_level": args.log_level,
+        "log_format": args.log_format})
+    if settings.log_format == "json":
+        import logging.config
+
+        from selfcal_service.logs import uvicorn_log_config
+
+        logging.config.dictConfig(uvicorn_log_config(settings.log_level, "json"))
+    else:
+        logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cal_config = {k: v for k, v in cfg.items() if k not in ("service", "gateway")}
     factory = CalibratorFactory(settings.calibrator, config=cal_config, model=settings.calibrator_model)
     store = PostgresStore(settings.db_path, group_commit_max_ops=settings.group_commit_max_ops)

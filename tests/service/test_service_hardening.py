@@ -391,3 +391,32 @@ def test_slow_clients_are_disconnected_and_others_still_served(tmp_path):
             for s in group:
                 s.close()
         srv.stop()
+
+
+# ------------------------------------------------------------------ structured logs
+def test_json_logs_carry_the_request_id_and_the_device(tmp_path):
+    """--log-format json: each line one JSON object; the client's X-Request-ID is echoed and
+    logged with the device id (here on an unexpected error)."""
+    import json
+
+    srv = ServerProcess(tmp_path / "selfcal.db", tmp_path, calibrator="service_fakes:SeedCrashCalibrator",
+                        args=["--log-format", "json"])
+    srv.start()
+    try:
+        with srv.client() as c:
+            r = c.put("/devices/dev-json/calibration", json={"matrix": np.eye(3).tolist(), "offset": [0, 0, 0]},
+                      headers={"X-Request-ID": "req-0042"})
+            assert r.status_code == 500 and r.headers["x-request-id"] == "req-0042"
+            assert "req-0042" in r.json()["message"]
+            other = c.get("/healthz", headers={"X-Request-ID": "bad id with spaces"})
+            assert other.headers["x-request-id"] != "bad id with spaces"  # not echoed: a fresh id
+            assert len(other.headers["x-request-id"]) == 16
+    finally:
+        srv.stop()
+    lines = [ln for ln in srv.log.read_text().splitlines() if ln.startswith("{")]
+    records = [json.loads(ln) for ln in lines]
+    assert records, srv.log.read_text()[-2000:]
+    hit = [r for r in records if r.get("request_id") == "req-0042"]
+    assert hit and hit[0]["device_id"] == "dev-json" and hit[0]["level"] == "error"
+    assert "Traceback" in hit[0]["exc"] and "unhandled error" in hit[0]["msg"]
+    assert all({"ts", "level", "logger", "msg", "pid"} <= set(r) for r in records)

@@ -155,3 +155,27 @@ def test_kill9_of_a_worker_and_an_api_process_loses_nothing_and_matches_one_proc
         for w in workers:
             w.stop()
         srv.stop()
+
+
+def test_metrics_add_up_over_api_processes(tmp_path):
+    """A scrape reaches one API process; its /metrics counts the batches every process stored."""
+    from service_helpers import batch_json
+
+    shared = tmp_path / "metrics"
+    srv = ServerProcess(tmp_path / "m.db", tmp_path, calibrator="service_fakes:FakeCalibrator",
+                        args=["--workers", "3"], env={"SELFCAL_METRICS_DIR": str(shared)})
+    try:
+        srv.start(timeout_s=60)
+        for seq in range(60):  # a new connection each: the kernel spreads them over the processes
+            r = httpx.post(f"{srv.url}/devices/m-dev/samples", json=batch_json(seq), timeout=10,
+                           headers={"Authorization": f"Bearer {KEYS['ingest']}"})
+            assert r.status_code == 200, r.text
+        time.sleep(1.5)  # each process publishes its counters about once a second
+        files = list(shared.glob("*.json"))
+        assert len(files) >= 2, files  # more than one process took part
+        for _ in range(5):  # whichever process answers, the sum is the same
+            text = httpx.get(f"{srv.url}/metrics", headers={"Authorization": f"Bearer {KEYS['read']}"},
+                             timeout=10).text
+            assert "selfcal_ingest_batches_total 60\n" in text, [ln for ln in text.splitlines() if "batches_total" in ln]
+    finally:
+        srv.stop()
