@@ -115,7 +115,16 @@ class GroupCommitStore(Storage):
                     raise StorageUnavailable(problem)
                 if conn is None:
                     conn = self._writer_connect()
-                conn.execute(self.begin_sql)
+                try:
+                    conn.execute(self.begin_sql)
+                except Exception as exc:  # noqa: BLE001 - nothing ran yet: a stale connection?
+                    if not self._is_storage_error(exc):
+                        raise
+                    # the server restarted or dropped an idle connection: one fresh try
+                    self._close_writer(conn)
+                    conn = None
+                    conn = self._writer_connect()
+                    conn.execute(self.begin_sql)
                 for fn, fut in ops:
                     conn.execute("SAVEPOINT op")
                     try:
@@ -144,7 +153,7 @@ class GroupCommitStore(Storage):
                     # a fresh connection next time: the old one may keep a read-only or
                     # I/O error state (SQLite) or be broken (PostgreSQL)
                     self._close_writer(conn)
-                conn = self._try_connect()
+                conn = None  # connect again with the next group (lazily: no wait during an outage)
                 for _, fut in ops:
                     if not fut.done():
                         fut.set_exception(reason)

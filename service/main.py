@@ -56,6 +56,7 @@ from selfcal_service.settings import Settings
 from selfcal_service.group_commit import GroupCommitStore
 from selfcal_service.sqlite_store import SQLiteStore
 from selfcal_service.storage import (
+    ConflictError,
     DeviceRecord,
     NewVersion,
     SeqConflict,
@@ -85,9 +86,17 @@ def _json(obj: Any, status: int = 200, headers: dict[str, str] | None = None) ->
     return Response(orjson.dumps(obj), status_code=status, media_type="application/json", headers=headers)
 
 
-def _current_or_404(store, device_id: str):
+async def _read(store: Storage, fn, *args):
+    """Call a store read: directly for SQLite (a local file, microseconds), in a thread for
+    a database server (PostgreSQL), so a slow or unreachable server never stalls the loop."""
+    if getattr(store, "blocking_reads", False):
+        return await run_in_threadpool(fn, *args)
+    return fn(*args)
+
+
+async def _current_or_404(store, device_id: str):
     """The device's (device row, current version), or a 404 naming the device."""
-    found = store.current(device_id)
+    found = await _read(store, store.current, device_id)
     if found is None:
         raise FieldError("device_id", f"unknown device {device_id!r}", 404)
     return found
@@ -407,6 +416,11 @@ def create_app(
                 415: "unsupported_media_type"}.get(exc.status, "validation_error")
         return _error(exc.status, kind, f"{exc.field}: {exc.message}", exc.field)
 
+    @app.exception_handler(ConflictError)
+    async def _busy(request: Request, exc: ConflictError) -> Response:
+        return _error(503, "busy", f"{exc} (another process kept changing the device; retry later)", None,
+                      {"Retry-After": "1"})
+
     @app.exception_handler(StorageUnavailable)
     async def _unavailable(request: Request, exc: StorageUnavailable) -> Response:
         metrics.inc("selfcal_storage_unavailable_total")
@@ -519,8 +533,11 @@ def create_app(
         )
         digest = hashlib.sha256(payload).digest()  # canonical bytes: the same samples, the same digest
         try:
-            result = await asyncio.wrap_future(store.submit_batch(
-                device_id, batch.seq, batch.n, payload, time.time(), digest, settings.max_seq_jump))
+            result = await asyncio.wait_for(asyncio.wrap_future(store.submit_batch(
+                device_id, batch.seq, batch.n, payload, time.time(), digest, settings.max_seq_jump)),
+                timeout=settings.write_timeout_s)
+        except asyncio.TimeoutError:  # the database did not answer: maybe stored later (a resend is a duplicate)
+            raise StorageUnavailable(f"no commit within {settings.write_timeout_s:g} s") from None
         except SeqConflict as exc:
             metrics.inc("selfcal_ingest_conflicts_total")
             raise FieldError("seq", str(exc), 409) from None
@@ -543,7 +560,7 @@ def create_app(
         tags=["calibration"],
     )
     async def get_calibration(device_id: DeviceId, store: StoreDep) -> Response:
-        found = _current_or_404(store, device_id)
+        found = await _current_or_404(store, device_id)
         return _model(calibration_out(device_id, *found))
 
     @app.put(
@@ -578,7 +595,7 @@ def create_app(
         )
         seed = {"params": body.params, "std": body.std, "matrix": body.matrix, "offset": body.offset}
         await _admin_publish(worker, device_id, version, seed)
-        dev, ver = store.current(device_id)
+        dev, ver = await _read(store, store.current, device_id)
         return _model(calibration_out(device_id, dev, ver))
 
     @app.get(
@@ -590,8 +607,8 @@ def create_app(
         tags=["calibration"],
     )
     async def get_history(device_id: DeviceId, store: StoreDep) -> Response:
-        found = _current_or_404(store, device_id)
-        versions = [_versions_out(v) for v in store.history(device_id)]
+        found = await _current_or_404(store, device_id)
+        versions = [_versions_out(v) for v in await _read(store, store.history, device_id)]
         return _model(HistoryOut(device_id=device_id, current_version=found[0].current_version, versions=versions))
 
     @app.post(
@@ -611,14 +628,14 @@ def create_app(
     async def post_rollback(device_id: DeviceId, request: Request, store: StoreDep, worker: WorkerDep) -> Response:
         body = await _json_body(request, RollbackIn, settings.max_body_bytes)
         assert isinstance(body, RollbackIn)
-        found = _current_or_404(store, device_id)
+        found = await _current_or_404(store, device_id)
         current = found[0].current_version
         target = body.to_version
         if target is None:
             if not current or current < 2:
                 raise FieldError("to_version", "no earlier version to roll back to", 422)
             target = current - 1
-        old = store.get_version(device_id, target)
+        old = await _read(store, store.get_version, device_id, target)
         if old is None:
             raise FieldError("to_version", f"device {device_id!r} has no version {target}", 404)
         version = NewVersion(
@@ -630,7 +647,7 @@ def create_app(
         seed = {"params": old.calibration.get("params"), "std": old.calibration.get("std"),
                 "matrix": old.calibration.get("matrix"), "offset": old.calibration.get("offset")}
         await _admin_publish(worker, device_id, version, seed)
-        dev, ver = store.current(device_id)
+        dev, ver = await _read(store, store.current, device_id)
         return _model(calibration_out(device_id, dev, ver))
 
     @app.get(
@@ -646,7 +663,7 @@ def create_app(
         after: Annotated[str | None, Query(max_length=64, description="last device_id of the previous page")] = None,
         limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     ) -> Response:
-        rows = store.list_devices(after, limit)
+        rows = await _read(store, store.list_devices, after, limit)
         devices = [
             DeviceOut(
                 device_id=d.device_id,
@@ -669,7 +686,7 @@ def create_app(
     async def healthz(request: Request) -> Response:
         store: Storage = request.app.state.store
         worker: RefitWorker = request.app.state.worker
-        db = store.ping()
+        db = await _read(store, store.ping)
         alive = worker.alive()
         expected = settings.worker_threads if settings.refit_in_process else 0  # --no-refit: API only
         ok = db and alive == expected
@@ -709,7 +726,9 @@ def create_app(
         tags=["ops"],
     )
     async def get_metrics(request: Request) -> Response:
-        return PlainTextResponse(metrics.render(), media_type="text/plain; version=0.0.4")
+        # render reads the backlog gauges from the store, and the other processes' files
+        text = await _read(request.app.state.store, metrics.render)
+        return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
 
     return app
 

@@ -143,7 +143,11 @@ class Metrics:
             lines.append(f"# HELP {name} {help_text}")
             lines.append(f"# TYPE {name} {kind}")
             if name in self._gauges:  # value read from a callable (gauge or counter)
-                lines.append(f"{name} {float(self._gauges[name]()):g}")
+                try:
+                    value = float(self._gauges[name]())
+                except Exception:  # noqa: BLE001 - e.g. the database is down: the scrape still answers
+                    value = float("nan")
+                lines.append(f"{name} {value:g}")
             elif kind == "counter":
                 rows = [(k[1], v) for k, v in counters.items() if k[0] == name] or [((), 0.0)]
                 for labels, value in sorted(rows):

@@ -6,8 +6,8 @@ processes and refit workers share one database:
 * **Writes** go through the same group-committing writer as SQLite
   (:mod:`selfcal_service.group_commit`), one writer connection per process. PostgreSQL's
   default ``synchronous_commit=on`` makes each COMMIT durable before a batch is
-  acknowledged. Ops of a group run in device-id order, so two processes' groups take
-  row locks in the same order and cannot deadlock each other.
+  acknowledged. Every write locks its device row first, and ops of a group run in
+  device-id order, so two processes' groups take row locks in the same order.
 * **Idempotent seq across processes.** ``INSERT … ON CONFLICT DO NOTHING`` waits for a
   concurrent insert of the same ``(device_id, seq)`` and then compares the content
   hash: duplicate or 409, never a 500.
@@ -105,6 +105,7 @@ _DEVICE_COLS = ", ".join(f"d.{c}" for c in _COLS)
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in _COLS)  # no state
 _N = len(_COLS)
 _VERSION_COLS = "version, status, source, created_at, calibration, provenance"
+_NOW = "extract(epoch from clock_timestamp())"  # the database's clock, seconds since the epoch
 
 
 def _device(row: tuple) -> DeviceRecord:
@@ -141,13 +142,18 @@ def is_postgres_url(db: str) -> bool:
 
 
 class PostgresStore(GroupCommitStore):
-    """PostgreSQL storage: group-committing writer, a connection per reading thread, leases."""
+    """PostgreSQL storage: group-committing writer, a small pool of reader connections, leases."""
 
-    def __init__(self, url: str, *, group_commit_max_ops: int = 512, connect_timeout_s: float = 10.0):
+    blocking_reads = True  # reads wait on a server: the routes call them in a thread
+
+    def __init__(self, url: str, *, group_commit_max_ops: int = 512, connect_timeout_s: float = 5.0,
+                 statement_timeout_s: float = 30.0, max_idle_readers: int = 8):
         super().__init__(group_commit_max_ops)
         self.url = url
         self.connect_timeout_s = connect_timeout_s
-        self._local = threading.local()
+        self.statement_timeout_s = statement_timeout_s
+        self.max_idle_readers = max_idle_readers
+        self._idle: list[Any] = []  # reader connections not in use (a small pool)
         self._conns: list[Any] = []
         self._conns_lock = threading.Lock()
 
@@ -155,35 +161,19 @@ class PostgresStore(GroupCommitStore):
     def _connect(self) -> Any:
         import psycopg
 
-        conn = psycopg.connect(self.url, autocommit=True, connect_timeout=int(max(1, self.connect_timeout_s)))
+        # keepalives and tcp_user_timeout: a partitioned database host fails a call in
+        # seconds, not after the kernel's 15-minute TCP timeout; statement_timeout bounds
+        # any one statement (a lock wait included)
+        conn = psycopg.connect(
+            self.url, autocommit=True, connect_timeout=int(max(1, self.connect_timeout_s)),
+            keepalives=1, keepalives_idle=5, keepalives_interval=2, keepalives_count=3,
+            tcp_user_timeout=int(1000 * max(1.0, self.connect_timeout_s)),
+            options=f"-c statement_timeout={int(1000 * self.statement_timeout_s)}")
         with self._conns_lock:
             self._conns.append(conn)
         return conn
 
-    def _reader(self) -> Any:
-        conn = getattr(self._local, "conn", None)
-        if conn is None or conn.closed or conn.broken:
-            conn = self._local.conn = self._connect()
-        return conn
-
-    def _read(self, sql: str, params: tuple | dict = ()) -> list[tuple]:
-        """Run a read on this thread's connection; one reconnect if the server dropped it."""
-        import psycopg
-
-        from selfcal_service.storage import StorageUnavailable
-
-        for attempt in (0, 1):
-            try:
-                return self._reader().execute(sql, params).fetchall()
-            except (psycopg.OperationalError, psycopg.InterfaceError) as exc:
-                self._local.conn = None
-                if attempt:
-                    raise StorageUnavailable(f"database read failed: {type(exc).__name__}: {exc}") from None
-        return []  # pragma: no cover
-
-    _writer_connect = _connect
-
-    def _close_writer(self, conn: Any) -> None:
+    def _drop(self, conn: Any) -> None:
         try:
             conn.close()
         except Exception:  # noqa: BLE001 - closing a broken connection
@@ -191,6 +181,43 @@ class PostgresStore(GroupCommitStore):
         with self._conns_lock:
             if conn in self._conns:
                 self._conns.remove(conn)
+
+    def _read(self, sql: str, params: tuple | dict = ()) -> list[tuple]:
+        """Run one statement on a pooled reader connection; a broken one is replaced once."""
+        import psycopg
+
+        from selfcal_service.storage import StorageUnavailable
+
+        for attempt in (0, 1):
+            with self._conns_lock:
+                conn = self._idle.pop() if self._idle else None
+            try:
+                if conn is None:
+                    conn = self._connect()
+                rows = conn.execute(sql, params).fetchall()
+            except (psycopg.OperationalError, psycopg.InterfaceError) as exc:
+                if conn is not None:
+                    self._drop(conn)  # never back into the pool
+                broken = conn is None or conn.broken or conn.closed
+                if attempt or not broken:  # a timeout or deadlock is not retried
+                    raise StorageUnavailable(f"database read failed: {type(exc).__name__}: {exc}") from None
+                continue
+            except BaseException:
+                self._drop(conn)
+                raise
+            with self._conns_lock:
+                if len(self._idle) < self.max_idle_readers:
+                    self._idle.append(conn)
+                    conn = None
+            if conn is not None:
+                self._drop(conn)
+            return rows
+        return []  # pragma: no cover
+
+    _writer_connect = _connect
+
+    def _close_writer(self, conn: Any) -> None:
+        self._drop(conn)
 
     def _is_storage_error(self, exc: BaseException) -> bool:
         import psycopg
@@ -242,6 +269,7 @@ class PostgresStore(GroupCommitStore):
                 except Exception:  # noqa: BLE001 - closing anyway
                     pass
             self._conns.clear()
+            self._idle.clear()
 
     def _take_group(self, first: Any) -> tuple[list, bool]:
         ops, stop = super()._take_group(first)
@@ -263,6 +291,10 @@ class PostgresStore(GroupCommitStore):
                         "batch must be identical (a new batch needs a new seq)")
                 return IngestResult(duplicate=True)
 
+            # lock order for every writer: the device row, then its batches and versions
+            conn.execute("INSERT INTO devices(device_id, created_at) VALUES (%s, %s) ON CONFLICT DO NOTHING",
+                         (device_id, received_at))
+            conn.execute("SELECT 1 FROM devices WHERE device_id = %s FOR UPDATE", (device_id,))
             found = existing()
             if found is not None:
                 return found
@@ -278,11 +310,8 @@ class PostgresStore(GroupCommitStore):
             ).fetchone()
             if inserted is None:  # another process stored this seq meanwhile (now committed)
                 return existing() or IngestResult(duplicate=True)
-            conn.execute(
-                "INSERT INTO devices(device_id, created_at, batches_stored) VALUES (%s, %s, 1) "
-                "ON CONFLICT (device_id) DO UPDATE SET batches_stored = devices.batches_stored + 1",
-                (device_id, received_at),
-            )
+            conn.execute("UPDATE devices SET batches_stored = batches_stored + 1 WHERE device_id = %s",
+                         (device_id,))
             return IngestResult(duplicate=False)
 
         op.device_id = device_id  # type: ignore[attr-defined]
@@ -308,14 +337,14 @@ class PostgresStore(GroupCommitStore):
             conn.execute("INSERT INTO devices(device_id, created_at) VALUES (%s, %s) ON CONFLICT DO NOTHING",
                          (p.device_id, now))
             row = conn.execute(  # the device row lock serialises publishers of this device
-                "SELECT processed_seq, state_rev, lease_owner, lease_until FROM devices "
+                f"SELECT processed_seq, state_rev, lease_owner, lease_until, {_NOW} FROM devices "
                 "WHERE device_id = %s FOR UPDATE", (p.device_id,)).fetchone()
-            processed, rev, owner, until = row
+            processed, rev, owner, until, db_now = row
             if processed != p.expected_processed_seq or (p.expected_state_rev is not None
                                                          and rev != p.expected_state_rev):
                 raise ConflictError(f"device {p.device_id}: changed under the worker "
                                     f"(processed_seq {processed}, state_rev {rev})")
-            if p.lease_owner is not None and (owner != p.lease_owner or (until or 0.0) < now):
+            if p.lease_owner is not None and (owner != p.lease_owner or (until or 0.0) < db_now):
                 raise ConflictError(f"device {p.device_id}: lease of {p.lease_owner} lost (owner {owner})")
             numbers = []
             for v in p.new_versions:
@@ -356,25 +385,30 @@ class PostgresStore(GroupCommitStore):
 
     # ------------------------------------------------------------ leases
     def acquire_leases(self, owner: str, ttl_s: float, limit: int, prefer: list[str] | None = None) -> list[str]:
-        """Lease up to ``limit`` devices with pending batches whose lease is free, expired or ours.
+        """Lease up to ``limit`` devices with pending batches whose lease is free or expired.
 
-        ``prefer`` (devices just ingested here) go first. Returns the leased ids.
+        ``prefer`` (devices just ingested here) go first; devices this owner already holds
+        are not returned again (renewal keeps them). Lease times are the database's clock,
+        so hosts with skewed clocks cannot steal each other's live leases.
         """
-        now = time.time()
         rows = self._read(
-            "UPDATE devices SET lease_owner = %(me)s, lease_until = %(until)s WHERE device_id IN ("
-            " SELECT d.device_id FROM devices d"
-            " WHERE (d.lease_owner IS NULL OR d.lease_until < %(now)s OR d.lease_owner = %(me)s)"
+            f"WITH c AS MATERIALIZED (SELECT d.device_id FROM devices d"
+            f" WHERE (d.lease_owner IS NULL OR d.lease_until < {_NOW})"
             " AND EXISTS (SELECT 1 FROM batches b WHERE b.device_id = d.device_id AND b.state = 0)"
             " ORDER BY (d.device_id = ANY(%(prefer)s)) DESC, d.updated_at NULLS FIRST"
-            " LIMIT %(limit)s FOR UPDATE SKIP LOCKED) RETURNING device_id",
-            {"me": owner, "until": now + ttl_s, "now": now, "prefer": list(prefer or []), "limit": limit})
+            " LIMIT %(limit)s FOR UPDATE SKIP LOCKED)"
+            f" UPDATE devices SET lease_owner = %(me)s, lease_until = {_NOW} + %(ttl)s"
+            " FROM c WHERE devices.device_id = c.device_id RETURNING devices.device_id",
+            {"me": owner, "ttl": ttl_s, "prefer": list(prefer or []), "limit": limit})
         return [r[0] for r in rows]
 
     def renew_leases(self, owner: str, ttl_s: float) -> int:
-        """Extend every lease ``owner`` holds; returns how many."""
-        rows = self._read("UPDATE devices SET lease_until = %s WHERE lease_owner = %s RETURNING 1",
-                          (time.time() + ttl_s, owner))
+        """Extend every lease ``owner`` holds (rows locked right now are skipped, never waited on)."""
+        rows = self._read(
+            f"WITH c AS MATERIALIZED (SELECT device_id FROM devices WHERE lease_owner = %(me)s"
+            " ORDER BY device_id FOR UPDATE SKIP LOCKED)"
+            f" UPDATE devices SET lease_until = {_NOW} + %(ttl)s FROM c"
+            " WHERE devices.device_id = c.device_id RETURNING 1", {"me": owner, "ttl": ttl_s})
         return len(rows)
 
     def release_lease(self, owner: str, device_id: str) -> None:
@@ -385,7 +419,7 @@ class PostgresStore(GroupCommitStore):
     def lease_counts(self) -> dict[str, int]:
         """Leases held now, by owner (for metrics)."""
         rows = self._read("SELECT lease_owner, COUNT(*) FROM devices WHERE lease_owner IS NOT NULL "
-                          "AND lease_until >= %s GROUP BY 1", (time.time(),))
+                          f"AND lease_until >= {_NOW} GROUP BY 1")
         return {r[0]: int(r[1]) for r in rows}
 
     # ------------------------------------------------------------ reads

@@ -57,6 +57,9 @@ class Settings(BaseModel):
     max_backlog_batches: int = Field(
         100_000, ge=1, description="/readyz fails above this many stored batches not yet fed",
     )
+    write_timeout_s: float = Field(
+        30.0, gt=0, le=600, description="an ingest not committed within this gets 503 (a resend is a duplicate)"
+    )
     refit_in_process: bool = Field(
         True, description="run refits in this process (SQLite: always; PostgreSQL: off for pure API processes)"
     )

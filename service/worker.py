@@ -207,6 +207,8 @@ class RefitWorker:
     def notify(self, device_id: str) -> None:
         """A device has new committed batches (cheap; called from the event loop)."""
         if self.lease is not None:  # lease it first (the lease thread), then work on it
+            if self._lease_thread is None:  # an API-only process (--no-refit): workers elsewhere poll
+                return
             with self._lease_cond:
                 self._wanted[device_id] = None
                 self._lease_cond.notify()
@@ -556,6 +558,9 @@ class RefitWorker:
             for device_id in got:
                 self._leased.add(device_id)
                 self._enqueue(device_id)
+            for device_id in wanted:  # new batches for a device we already hold: look again
+                if device_id in self._leased and device_id not in got:
+                    self._enqueue(device_id)
 
     def _release(self, device_id: str) -> None:
         self._leased.discard(device_id)
@@ -579,10 +584,15 @@ class RefitWorker:
             try:
                 return self._publish_admin_once(device_id, version, seed, timeout_s)
             except ConflictError:
+                self._cache.pop(device_id, None)
                 if attempt == 4:
                     raise
-                self._cache.pop(device_id, None)
                 time.sleep(0.05 * (attempt + 1))
+            except BaseException:
+                # the seed went into the cached calibrator before the commit: a write that
+                # failed must not reach a later refit through the cache
+                self._cache.pop(device_id, None)
+                raise
         raise AssertionError("unreachable")  # pragma: no cover
 
     def _publish_admin_once(

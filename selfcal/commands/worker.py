@@ -77,9 +77,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         while not stop.wait(args.status_every_s if args.status_every_s > 0 else 3600):
             if args.status_every_s > 0:
+                try:  # the database may be down for a moment: the worker waits it out
+                    backlog = f"{store.backlog()} batches"
+                except Exception as exc:  # noqa: BLE001
+                    backlog = f"unknown ({type(exc).__name__})"
                 print(f"selfcal worker: {time.monotonic() - t0:7.0f} s, {worker.cycles} cycles, "
                       f"{metrics.get('selfcal_worker_samples_total'):.0f} samples fed, "
-                      f"{len(worker._leased)} devices leased, backlog {store.backlog()} batches, "
+                      f"{len(worker._leased)} devices leased, backlog {backlog}, "
                       f"{worker.conflicts} conflicts", file=sys.stderr, flush=True)
     finally:
         worker.stop()

@@ -208,14 +208,21 @@ class WorkerProcess:
                 self.kill9()
 
 
-def child_pids(pid: int) -> list[int]:
-    """The direct children of a process (Linux /proc)."""
+def child_pids(pid: int, cmdline_has: str = "") -> list[int]:
+    """The direct children of a process (Linux /proc) whose command line contains ``cmdline_has``."""
     out = []
     for task in Path(f"/proc/{pid}/task").glob("*"):
         try:
             out += [int(x) for x in (task / "children").read_text().split()]
         except OSError:
             pass
+    if cmdline_has:
+        def cmdline(p: int) -> str:
+            try:
+                return Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+            except OSError:
+                return ""
+        out = [p for p in out if cmdline_has in cmdline(p)]
     return out
 
 

@@ -348,6 +348,29 @@ def test_slow_clients_are_disconnected_and_others_still_served(tmp_path):
                                f"{KEYS['ingest']}\r\nContent-Type: application/json\r\n"
                                f"Content-Length: 1000\r\n\r\n{{\"seq\": 0,").encode())
                 socks[kind].append(s)
+        # the drip sockets send one more byte of their head every 0.2 s from now on: the
+        # head deadline must close them anyway (a timer reset by every byte would not)
+        drip = b"ET /healthz HTTP/1.1\r\nHost: x\r\nX-Pad: " + b"a" * 200
+        dripped = {"bytes": 0}
+
+        def dripper() -> None:
+            for i in range(len(drip)):
+                alive = 0
+                for s in socks["drip"]:
+                    try:
+                        s.send(drip[i:i + 1])
+                        alive += 1
+                        dripped["bytes"] += 1
+                    except OSError:
+                        pass
+                if not alive:
+                    return
+                time.sleep(0.2)
+
+        import threading
+
+        drip_thread = threading.Thread(target=dripper, daemon=True)
+        drip_thread.start()
         # meanwhile an ordinary client is served, and pausing 1.5 s between requests is fine
         with srv.client("read") as c:
             for _ in range(3):
@@ -362,8 +385,6 @@ def test_slow_clients_are_disconnected_and_others_still_served(tmp_path):
                     sel.register(s, selectors.EVENT_READ, kind)
             open_left = {k: len(v) for k, v in socks.items()}
             deadline = time.monotonic() + 30
-            drip = b"ET /healthz HTTP/1.1\r\nHost: x\r\n"
-            i = 0
             while sum(open_left.values()) and time.monotonic() < deadline:
                 for key, _ in sel.select(timeout=0.2):
                     try:
@@ -373,13 +394,8 @@ def test_slow_clients_are_disconnected_and_others_still_served(tmp_path):
                     assert not data or key.data == "stalled_body", data  # no response to a half request
                     sel.unregister(key.fileobj)
                     open_left[key.data] -= 1
-                for s in socks["drip"]:  # one more byte of the head every 0.2 s
-                    if s.fileno() != -1 and i < len(drip):
-                        try:
-                            s.send(drip[i:i + 1])
-                        except OSError:
-                            pass
-                i += 1
+            drip_thread.join(timeout=10)
+            assert dripped["bytes"] >= 2 * len(socks["drip"])  # they did drip before being closed
             assert open_left == {"silent": 0, "half_head": 0, "drip": 0, "stalled_body": 0}
             assert c.get("/devices").status_code == 200
             text = c.get("/metrics").text

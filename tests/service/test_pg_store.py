@@ -1,0 +1,93 @@
+"""PostgresStore's shared-database contracts, with two store instances (two "processes").
+
+Runs in the ``SELFCAL_TEST_BACKEND=postgresql`` pass. Checks what the HTTP tests cannot
+force deterministically: a concurrent resend from another process, a cycle whose lease
+was lost, a cycle that started before another writer changed the device, and two
+workers leasing disjoint devices with expiry.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import time
+
+import pytest
+
+from service_helpers import backend_db, only_postgres
+
+from selfcal_service.pg_store import PostgresStore
+from selfcal_service.storage import ConflictError, NewVersion, Progress, SeqConflict
+
+pytestmark = only_postgres
+
+
+@pytest.fixture()
+def two_stores(tmp_path):
+    url = backend_db(tmp_path / "pg-store.db")
+    a, b = PostgresStore(url), PostgresStore(url)
+    a.open()
+    b.open()  # the second open finds the schema and runs no migration
+    yield a, b
+    a.close()
+    b.close()
+
+
+def _ingest(store, device, seq, payload=b"x" * 64):
+    return store.submit_batch(device, seq, 4, payload, time.time(), hashlib.sha256(payload).digest(), 100_000)
+
+
+def test_the_same_seq_from_two_processes_is_stored_once(two_stores):
+    a, b = two_stores
+    with cf.ThreadPoolExecutor(8) as pool:
+        futs = [pool.submit(lambda s=s, q=q: _ingest(s, "dev-1", q).result(timeout=30))
+                for q in range(20) for s in (a, b, a, b)]
+        results = [f.result() for f in futs]
+    assert sum(not r.duplicate for r in results) == 20  # each seq stored once, the rest duplicates
+    dev, _ = a.current("dev-1")
+    assert dev.batches_stored == 20 and a.backlog() == 20
+    with pytest.raises(SeqConflict):
+        _ingest(b, "dev-1", 3, payload=b"y" * 64).result(timeout=30)
+
+
+def _progress(dev, **kw):
+    base = dict(device_id="dev-2", expected_processed_seq=dev.processed_seq, processed_seq=0, samples_added=4,
+                calibrator_state="{}", calibrator_status="provisional", last_refit=None, feed_state={},
+                new_versions=[NewVersion("provisional", "refit", {"params": {}}, {})], fed_seqs=[0],
+                expected_state_rev=dev.state_rev)
+    base.update(kw)
+    return Progress(**base)
+
+
+def test_a_cycle_that_lost_its_lease_or_its_starting_state_writes_nothing(two_stores):
+    a, b = two_stores
+    _ingest(a, "dev-2", 0).result(timeout=30)
+    assert a.acquire_leases("worker-a", 30.0, 10) == ["dev-2"]
+    assert b.acquire_leases("worker-b", 30.0, 10) == []  # leased: not for b
+    dev = a.load_device("dev-2")
+    with pytest.raises(ConflictError, match="lease"):  # b never held it
+        b.commit_progress(_progress(dev, lease_owner="worker-b")).result(timeout=30)
+    stale = _progress(dev, lease_owner="worker-a", expected_state_rev=dev.state_rev + 7)
+    with pytest.raises(ConflictError, match="changed"):
+        a.commit_progress(stale).result(timeout=30)
+    assert a.history("dev-2") == [] and a.backlog() == 1  # nothing written by either
+    assert a.commit_progress(_progress(dev, lease_owner="worker-a")).result(timeout=30) == [1]
+    after = a.load_device("dev-2")
+    assert after.state_rev == dev.state_rev + 1 and after.processed_seq == 0 and a.backlog() == 0
+    with pytest.raises(ConflictError):  # the same cycle again (a replay after a crash) is refused
+        a.commit_progress(_progress(dev, lease_owner="worker-a")).result(timeout=30)
+    assert len(a.history("dev-2")) == 1
+
+
+def test_two_workers_lease_disjoint_devices_and_an_expired_lease_moves_on(two_stores):
+    a, b = two_stores
+    for i in range(6):
+        _ingest(a, f"dev-l{i}", 0).result(timeout=30)
+    got_a = a.acquire_leases("worker-a", 0.6, 3)
+    got_b = b.acquire_leases("worker-b", 30.0, 10)
+    assert len(got_a) == 3 and len(got_b) == 3 and not set(got_a) & set(got_b)
+    assert a.acquire_leases("worker-a", 0.6, 10) == []  # its own are not handed out again
+    assert a.renew_leases("worker-a", 0.6) == 3
+    time.sleep(0.8)  # worker a stops renewing (killed): its leases expire
+    assert sorted(b.acquire_leases("worker-b", 30.0, 10)) == sorted(got_a)
+    assert a.lease_counts() == {"worker-b": 6}
