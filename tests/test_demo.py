@@ -128,3 +128,13 @@ def test_demo_same_seed_same_figures(capsys):
         figs.append([(d["status"], d["sphere_norm_rms_mg"], d["predicted_sphere_rms_mg"], d["worn_norm_rms_mg"],
                       d["versions"], d["samples_stored"]) for d in out["devices"]])
     assert figs[0] == figs[1]
+
+
+def test_demo_help_names_the_default_hours():
+    """`selfcal demo --help` states the default without importing the demo (kept in sync here)."""
+    from selfcal.cli import build_parser
+    from selfcal.demo import DEFAULT_HOURS
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    help_text = sub.choices["demo"].format_help()
+    assert f"default {DEFAULT_HOURS:g}" in help_text

@@ -16,6 +16,7 @@ import json
 import os
 import sys
 import time
+from typing import TYPE_CHECKING
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,9 @@ from selfcal.config import load_config, section
 from selfcal.errors import InputError
 from selfcal.scoring import truth_path
 from selfcal.sim.config import EFFECT_NAMES, SimConfig
-from selfcal.sim.simulator import PoseTable, SampleChunk, Simulation
+
+if TYPE_CHECKING:  # the simulator itself loads when the command runs (scipy.signal: ~0.4 s)
+    from selfcal.sim.simulator import PoseTable, Simulation
 
 SAMPLE_COLUMNS = ("t_s", "ax_g", "ay_g", "az_g", "temp_c", "p1_kpa", "p2_kpa", "p3_kpa", "p4_kpa")
 _FMT = "%.4f,%.6f,%.6f,%.6f,%.2f,%.2f,%.2f,%.2f,%.2f"
@@ -107,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
     if not out.parent.exists():
         raise InputError(f"--out: directory {out.parent} does not exist")
     t0 = time.perf_counter()
+    from selfcal.sim.simulator import Simulation
+
     sim = Simulation(cfg, np.random.default_rng(args.seed), days=args.days, rate_hz=args.rate_hz, seed=args.seed)
     if args.kind == "samples":
         rows = write_samples_csv(out, sim, args.seed, progress=sys.stderr.isatty())

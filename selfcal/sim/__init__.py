@@ -19,18 +19,31 @@ Examples
 >>> truth = sim.truth.to_dict()   # matrix, offset, params, effects, seed, config
 """
 
-from selfcal.sim.config import EFFECT_NAMES, SimConfig
-from selfcal.sim.sensor import SensorTruth, canonical_params, canonical_qr, draw_sensor_truth, sensor_mean
-from selfcal.sim.simulator import (
-    PoseTable,
-    SampleChunk,
-    Simulation,
-    SimTruth,
-    iter_samples,
-    simulate_poses,
-    simulate_samples,
-)
-from selfcal.sim.wearer import ACTIVITY_NAMES, Schedule, make_schedule
+import importlib
+from typing import Any
+
+from selfcal.sim.config import EFFECT_NAMES, SimConfig  # light: pydantic only
+
+#: where each public name lives; the heavy modules (scipy.signal, interpolation) load on
+#: first use, so ``selfcal --version`` and commands that only need the effect names
+#: do not pay ~0.4 s for them
+_LAZY = {
+    "SensorTruth": "sensor", "canonical_params": "sensor", "canonical_qr": "sensor",
+    "draw_sensor_truth": "sensor", "sensor_mean": "sensor",
+    "PoseTable": "simulator", "SampleChunk": "simulator", "Simulation": "simulator", "SimTruth": "simulator",
+    "iter_samples": "simulator", "simulate_poses": "simulator", "simulate_samples": "simulator",
+    "ACTIVITY_NAMES": "wearer", "Schedule": "wearer", "make_schedule": "wearer",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name's module on first access (PEP 562)."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'selfcal.sim' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"selfcal.sim.{module}"), name)
+    globals()[name] = value
+    return value
 
 __all__ = [
     "ACTIVITY_NAMES", "EFFECT_NAMES", "PoseTable", "SampleChunk", "Schedule", "SensorTruth", "SimConfig",
