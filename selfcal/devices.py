@@ -39,6 +39,25 @@ def _series(ts: dict, name: str):
     return None, None
 
 
+#: Axivity files are whole 512-byte sectors (a 1024-byte header, then data blocks).
+CWA_SECTOR_BYTES = 512
+
+
+def _check_not_cut(path: Path, fmt: str) -> None:
+    """Refuse a file whose size shows it was cut (a copy or download that stopped).
+
+    An Axivity ``.cwa`` is a whole number of 512-byte sectors; actfast silently drops a
+    partial last sector, so a cut copy would otherwise calibrate as a shorter recording.
+    (A cut ``.gt3x`` is a broken zip archive, which actfast already refuses.)
+    """
+    if path.suffix.lower() == ".cwa":
+        size = path.stat().st_size
+        if size % CWA_SECTOR_BYTES:
+            raise InputError(
+                f"{path}: truncated {fmt} file: {size} bytes is not a whole number of {CWA_SECTOR_BYTES}-byte "
+                f"sectors (the last {size % CWA_SECTOR_BYTES} bytes are a cut sector); copy the file again")
+
+
 def read_device(path: str | os.PathLike):
     """Decode a device file into a :class:`selfcal.io.Recording` (``kind=samples``, unit g).
 
@@ -50,6 +69,7 @@ def read_device(path: str | os.PathLike):
     fmt = DEVICE_SUFFIXES.get(Path(path).suffix.lower(), "device")
     if not Path(path).is_file():
         raise InputError(f"{name}: no such file")
+    _check_not_cut(Path(path), fmt)
     try:
         import actfast
     except ImportError:

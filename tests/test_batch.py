@@ -24,6 +24,11 @@ def test_many_files_summary_and_error_rows(tmp_path, capsys, jobs):
     if jobs == 2:
         pytest.importorskip("actfast")
         files.append(DATA / "device-formats" / "axivity_ax3.cwa")  # real, but 36 s: refused
+        for real in ("axivity_ax3.cwa", "actigraph.gt3x"):  # truncated copies of real files: error rows
+            raw = (DATA / "device-formats" / real).read_bytes()
+            cut_copy = tmp_path / f"cut_{real}"
+            cut_copy.write_bytes(raw[: len(raw) * 6 // 10 + 7])
+            files.append(cut_copy)
     summary = tmp_path / "summary.csv"
     code = main(["calibrate", *map(str, files), "--jobs", str(jobs), "--summary", str(summary)])
     out = capsys.readouterr()
@@ -35,6 +40,9 @@ def test_many_files_summary_and_error_rows(tmp_path, capsys, jobs):
     assert Path(by["wrist.csv"]["calibration"]).exists()
     assert by["cut.csv"]["status"] == "error" and "cut.csv" in by["cut.csv"]["error"]
     assert by["junk.cwa"]["status"] == "error" and "junk.cwa" in by["junk.cwa"]["error"]
+    if jobs == 2:
+        assert by["cut_axivity_ax3.cwa"]["status"] == "error" and "truncated" in by["cut_axivity_ax3.cwa"]["error"]
+        assert by["cut_actigraph.gt3x"]["status"] == "error" and "cut_actigraph.gt3x" in by["cut_actigraph.gt3x"]["error"]
     failed = sum(r["status"] in ("error", "uncalibrated") for r in rows)
     assert code == failed == len(files) - 1  # the exit code is the number of files that failed
     md = summary.with_suffix(".md").read_text()

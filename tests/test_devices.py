@@ -39,6 +39,11 @@ def test_truncated_or_garbage_device_file_is_an_input_error(tmp_path):
     bad.write_bytes((DATA / "axivity_ax3.cwa").read_bytes()[:700])  # inside the header
     with pytest.raises(InputError, match="cut.cwa"):
         selfcal.read(bad)
+    mid = tmp_path / "mid.cwa"  # cut inside a data sector: actfast alone would drop it silently
+    raw = (DATA / "axivity_ax3.cwa").read_bytes()
+    mid.write_bytes(raw[: 1024 + 3 * 512 + 100])
+    with pytest.raises(InputError, match="truncated"):
+        selfcal.read(mid)
     junk = tmp_path / "junk.gt3x"
     junk.write_bytes(b"\x00" * 4096)
     with pytest.raises(InputError, match="junk.gt3x"):
