@@ -144,6 +144,11 @@ class PoseStore:
     n_dropped: int = 0
     t_origin: float | None = None  # time of the first window: blocks are counted from it
     _index: dict = field(default_factory=dict, repr=False)
+    # the per-cell derived values of one ``stats`` array, computed once per refit instead of
+    # once per use (eigh of every cell's 3x3 scatter): (the array itself, its in-place edit
+    # count, the result). Holding the array keeps its id from being reused.
+    _derived_cache: tuple | None = field(default=None, repr=False, compare=False)
+    _edits: int = field(default=0, repr=False, compare=False)
 
     @classmethod
     def empty(cls, config: PoseConfig | None = None) -> "PoseStore":
@@ -177,7 +182,11 @@ class PoseStore:
     # ------------------------------------------------------------------ cell views
     def _derived(self, rows: np.ndarray | slice | None = None):
         """(mean direction (k,3), mean d (k,), per-window noise variance (k,), scatter dof (k,))."""
-        return self._derived_from(self.stats if rows is None else self.stats[rows])
+        cache = self._derived_cache
+        if cache is None or cache[0] is not self.stats or cache[1] != self._edits:
+            cache = self._derived_cache = (self.stats, self._edits, self._derived_from(self.stats))
+        full = cache[2]
+        return full if rows is None else tuple(x[rows] for x in full)
 
     def _derived_from(self, s: np.ndarray):
         """:meth:`_derived` of a statistics table ``s`` (k, N_STATS)."""
@@ -267,6 +276,7 @@ class PoseStore:
         if exist.any():
             t = target[exist]
             self.stats[t] += sums[exist]
+            self._edits += 1  # an in-place change: the derived values are stale
             self.t_first[t] = np.minimum(self.t_first[t], tmin[exist])
             self.t_last[t] = np.maximum(self.t_last[t], tmax[exist])
         new = ~exist
