@@ -49,6 +49,7 @@ import numpy as np
 from selfcal.attitude import roll_pitch_deg
 from selfcal.calibrator import OnlineCalibrator
 from selfcal.config import section
+from selfcal.errors import InputError
 from selfcal.fit import sphere_directions
 from selfcal.models import ErrorModel
 from selfcal.sim import SimConfig, Simulation, canonical_qr, sensor_mean
@@ -248,10 +249,22 @@ def _replay_one(kwargs: dict) -> dict:
     return replay(**kwargs)
 
 
-def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: bool = False, **kwargs) -> list[dict]:
-    """Replay ``devices`` independent devices (seeds ``seed .. seed+devices-1``) across processes."""
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+ENGINES = ("processes", "dask", "ray")
 
+
+def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: bool = False, *,
+                 engine: str = "processes", scheduler: str | None = None, **kwargs) -> list[dict]:
+    """Replay ``devices`` independent devices (seeds ``seed .. seed+devices-1``) in parallel.
+
+    ``engine``: ``processes`` (a local process pool, the default), ``dask`` (a
+    ``distributed`` cluster: the one at ``scheduler`` address, else a local cluster of
+    ``workers`` single-threaded worker processes) or ``ray`` (``ray.init(address=scheduler)``).
+    Each device's replay is the same function with the same seed on every engine, so
+    the results are identical (only ``wall_s`` differs). Returns the results in seed
+    order; the progress bar (stderr) counts devices and shows the ETA.
+    """
+    if engine not in ENGINES:
+        raise InputError(f"--engine {engine!r}: choose one of {', '.join(ENGINES)}")
     jobs = [dict(kwargs, seed=seed + i, progress=False) for i in range(devices)]
     workers = workers or min(devices, os.cpu_count() or 1)
     results: list[dict | None] = [None] * devices
@@ -259,22 +272,72 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=devices, desc="devices", unit="device", file=sys.stderr)
-    if workers <= 1:
+        bar = tqdm(total=devices, desc=f"devices ({engine})", unit="device", file=sys.stderr)
+
+    def done(i: int, result: dict) -> None:
+        results[i] = result
+        if bar:
+            bar.update(1)
+
+    if engine == "dask":
+        _run_dask(jobs, workers, scheduler, done)
+    elif engine == "ray":
+        _run_ray(jobs, scheduler, done)
+    elif workers <= 1:
         for i, job in enumerate(jobs):
-            results[i] = _replay_one(job)
-            if bar:
-                bar.update(1)
+            done(i, _replay_one(job))
     else:
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
         with ProcessPoolExecutor(max_workers=workers) as pool:
             futs = {pool.submit(_replay_one, job): i for i, job in enumerate(jobs)}
             for fut in as_completed(futs):
-                results[futs[fut]] = fut.result()
-                if bar:
-                    bar.update(1)
+                done(futs[fut], fut.result())
     if bar:
         bar.close()
     return results  # type: ignore[return-value]
+
+
+def _run_dask(jobs: list[dict], workers: int, scheduler: str | None, done) -> None:
+    """Run the jobs on a Dask ``distributed`` cluster (a local one unless ``scheduler`` is given)."""
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise InputError("--engine dask needs dask's distributed scheduler "
+                         "(pip install 'selfcal[fleet]')") from None
+    cluster = None
+    if scheduler:
+        client = Client(scheduler)
+    else:  # one single-threaded worker process per core: the replay is CPU-bound Python
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=40)
+        client = Client(cluster)
+    try:
+        futs = client.map(_replay_one, jobs, pure=False)
+        index = {f.key: i for i, f in enumerate(futs)}
+        for fut in as_completed(futs):
+            done(index[fut.key], fut.result())
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _run_ray(jobs: list[dict], scheduler: str | None, done) -> None:
+    """Run the jobs as Ray tasks (``ray.init(address=scheduler)``; a local Ray without it)."""
+    try:
+        import ray
+    except ImportError:
+        raise InputError("--engine ray needs ray (pip install ray); it is not part of selfcal's extras") from None
+    ray.init(address=scheduler, ignore_reinit_error=True, log_to_driver=False)
+    remote = ray.remote(_replay_one)
+    refs = [remote.remote(job) for job in jobs]
+    index = {r: i for i, r in enumerate(refs)}
+    pending = list(refs)
+    while pending:
+        ready, pending = ray.wait(pending, num_returns=1)
+        for r in ready:
+            done(index[r], ray.get(r))
 
 
 def replay_recording(

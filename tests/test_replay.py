@@ -114,3 +114,36 @@ def test_samples_level_30_days_through_the_detector():
     assert max(z) < 5, z
     print(f"30 days at the samples level: {out['wall_s']:.1f} s, final "
           f"{refits[-1]['sphere_norm_rms_mg']:.3f} mg, max z {max(z):.2f}")
+
+
+def _without_timings(x):
+    if isinstance(x, dict):
+        return {k: _without_timings(v) for k, v in x.items() if k not in ("wall_s", "fit_ms")}
+    if isinstance(x, list):
+        return [_without_timings(v) for v in x]
+    return x
+
+
+def test_fleet_replay_is_identical_on_the_process_pool_and_on_dask():
+    """The same seeds give the same results on every engine (only the wall times differ)."""
+    pytest.importorskip("distributed")
+    from selfcal.config import load_config
+    from selfcal.replay import replay_fleet
+
+    kw = dict(days=2.0, refit_every_days=1.0, config=load_config())
+    local = replay_fleet(3, seed=11, workers=2, engine="processes", **kw)
+    dask = replay_fleet(3, seed=11, workers=2, engine="dask", **kw)
+    assert len(local) == 3 and all(r["refits"] for r in local)
+    assert [r["seed"] for r in dask] == [11, 12, 13]
+    assert _without_timings(dask) == _without_timings(local)
+
+
+def test_unknown_or_missing_engine_is_a_clear_error(capsys):
+    from selfcal.cli import main
+
+    assert main(["replay", "--days", "1", "--devices", "2", "--engine", "ray", "--no-progress"]) in (0, 2)
+    err = capsys.readouterr().err
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        assert "--engine ray needs ray" in err

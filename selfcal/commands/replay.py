@@ -23,7 +23,7 @@ from selfcal.sim import EFFECT_NAMES
 
 #: The simulation's options and their defaults (None in the parser: a given one is seen).
 SIM_DEFAULTS = {"days": 30.0, "refit_every_days": 3.0, "seed": 0, "devices": 1, "workers": None, "effects": "",
-                "level": "poses", "no_random_init": False, "checkpoint": None}
+                "level": "poses", "no_random_init": False, "checkpoint": None, "engine": None, "scheduler": None}
 
 
 def add_arguments(parser) -> None:
@@ -43,6 +43,11 @@ def add_arguments(parser) -> None:
     sim.add_argument("--devices", type=int, default=None,
                      help="independent devices (seeds seed..seed+N-1), across processes (default 1)")
     sim.add_argument("--workers", type=int, default=None, help="processes for --devices (default: CPU count)")
+    sim.add_argument("--engine", choices=["processes", "dask", "ray"], default=None,
+                     help="where the devices run: a local process pool (default), a Dask distributed cluster "
+                          "(local, or --scheduler ADDRESS) or Ray; results are identical")
+    sim.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                     help="--engine dask: the scheduler (tcp://host:8786); ray: the cluster address")
     sim.add_argument("--effects", default=None, help=f"comma-separated sensor effects to simulate: {', '.join(EFFECT_NAMES)}")
     sim.add_argument("--level", choices=("poses", "samples"), default=None,
                      help="feed still windows (fast, the default) or the full 20 Hz stream through the detector")
@@ -84,7 +89,8 @@ def run(args) -> int:
     else:
         if args.checkpoint:
             raise InputError("--checkpoint works with one device")
-        results = replay_fleet(args.devices, args.seed, workers=args.workers, progress=progress, **kw)
+        results = replay_fleet(args.devices, args.seed, workers=args.workers, progress=progress,
+                               engine=args.engine or "processes", scheduler=args.scheduler, **kw)
         wall = time.perf_counter() - t0
         last = [r["refits"][-1] for r in results if r["refits"]]
         out = {
