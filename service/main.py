@@ -376,8 +376,8 @@ def create_app(
             metrics.gauge("selfcal_backlog_oldest_age_seconds", st.oldest_pending_age_s)
         if isinstance(st, GroupCommitStore):
             metrics.gauge("selfcal_db_write_queue_depth", st.queue_depth)
-            metrics.gauge("selfcal_db_commits_total", lambda: st.commits)
-            metrics.gauge("selfcal_db_writes_total", lambda: st.ops_committed)
+            metrics.counter_from("selfcal_db_commits_total", lambda: st.commits)
+            metrics.counter_from("selfcal_db_writes_total", lambda: st.ops_committed)
         try:
             yield
         finally:

@@ -3,8 +3,10 @@
 With several API processes (``selfcal serve --workers N``) a scrape reaches one of them.
 Each process then also writes its counters and histograms to ``<shared_dir>/<pid>.json``
 about once a second, and :meth:`Metrics.render` adds up every process's file (a dead
-process's last file stays, so counters never go backwards). Gauges are the answering
-process's own, except those read from the shared database (backlog), which are global.
+process's last file stays, so counters never go backwards; ``serve`` empties the folder
+when it starts). Gauges are the answering process's own, except those read from the
+shared database (backlog), which are global. A ``selfcal worker`` given the same folder
+(``[service] metrics_dir``) adds its refit counters.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import threading
+import uuid
 from pathlib import Path
 from typing import Callable
 
@@ -60,22 +63,41 @@ class Metrics:
         self._counters: dict[tuple[str, tuple[tuple[str, str], ...]], float] = {}
         self._hist: dict[tuple[str, tuple[tuple[str, str], ...]], list[float]] = {}
         self._gauges: dict[str, Callable[[], float]] = {}
+        self._counter_fns: dict[str, Callable[[], float]] = {}
+        # one file per process life: a later process with the same pid does not overwrite it
+        self._file = f"{os.getpid()}-{uuid.uuid4().hex[:8]}.json"
         self.shared_dir = Path(shared_dir) if shared_dir else None
         if self.shared_dir is not None:
             self.shared_dir.mkdir(parents=True, exist_ok=True)
             threading.Thread(target=self._publish_loop, name="selfcal-metrics", daemon=True).start()
 
     # ------------------------------------------------------------ several processes
-    def _snapshot(self) -> dict:
+    def counter_from(self, name: str, fn: Callable[[], float]) -> None:
+        """A counter whose value this process reads from ``fn`` (e.g. its store's commits);
+        summed over processes like the others."""
+        self._counter_fns[name] = fn
+
+    def _own_counters(self) -> dict:
         with self._lock:
-            return {"counters": [[k[0], list(k[1]), v] for k, v in self._counters.items()],
-                    "hist": [[k[0], list(k[1]), v] for k, v in self._hist.items()]}
+            counters = dict(self._counters)
+        for name, fn in self._counter_fns.items():
+            try:
+                counters[(name, ())] = float(fn())
+            except Exception:  # noqa: BLE001 - a source that fails counts as nothing new
+                pass
+        return counters
+
+    def _snapshot(self) -> dict:
+        counters = self._own_counters()
+        with self._lock:
+            hist = [[k[0], list(k[1]), v] for k, v in self._hist.items()]
+        return {"counters": [[k[0], list(k[1]), v] for k, v in counters.items()], "hist": hist}
 
     def publish(self) -> None:
         """Write this process's counters and histograms to the shared folder (atomically)."""
         if self.shared_dir is None:
             return
-        path = self.shared_dir / f"{os.getpid()}.json"
+        path = self.shared_dir / self._file
         tmp = path.with_suffix(".tmp")
         tmp.write_text(json.dumps(self._snapshot()))
         os.replace(tmp, path)
@@ -90,12 +112,12 @@ class Metrics:
 
     def _merged(self) -> tuple[dict, dict]:
         """Counters and histograms of this process plus every other process's last file."""
+        counters = self._own_counters()
         with self._lock:
-            counters = dict(self._counters)
             hist = {k: list(v) for k, v in self._hist.items()}
         if self.shared_dir is None:
             return counters, hist
-        own = f"{os.getpid()}.json"
+        own = self._file
         for f in self.shared_dir.glob("*.json"):
             if f.name == own:
                 continue

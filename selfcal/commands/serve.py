@@ -104,8 +104,11 @@ def run(args: argparse.Namespace) -> int:
     # their metrics meet in a shared folder, so a scrape of any process counts them all
     import shutil
     import tempfile
+    from pathlib import Path
 
     shared = settings.metrics_dir or tempfile.mkdtemp(prefix="selfcal-metrics-")
+    for old in Path(shared).glob("*.json"):  # counters start at zero with each start, as in one process
+        old.unlink(missing_ok=True)
     spec = {"settings": {**settings.model_dump(), "metrics_dir": shared}, "config": cfg}
     os.environ[SERVE_ENV] = json.dumps(spec)
     try:

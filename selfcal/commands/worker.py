@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         store.open()
     except Exception as exc:  # noqa: BLE001 - unreachable database: one clear line
         raise InputError(f"--db: cannot open the database ({type(exc).__name__}: {exc})") from None
-    metrics = Metrics()
+    metrics = Metrics(settings.metrics_dir or None)  # a shared folder: the API's /metrics adds our refits
     worker = make_worker(store, factory, metrics, settings)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import threading
 import time
@@ -188,5 +189,7 @@ def test_metrics_add_up_over_api_processes(tmp_path):
             text = httpx.get(f"{srv.url}/metrics", headers={"Authorization": f"Bearer {KEYS['read']}"},
                              timeout=10).text
             assert "selfcal_ingest_batches_total 60\n" in text, [ln for ln in text.splitlines() if "batches_total" in ln]
+            writes = float(re.search(r"^selfcal_db_writes_total (\S+)$", text, re.M).group(1))
+            assert writes >= 60  # every process's committed writes, not only the answering one's
     finally:
         srv.stop()
