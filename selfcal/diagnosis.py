@@ -242,8 +242,10 @@ def diagnose_poses(
     fit_cfg = FitConfig.from_section(section(config, "fit"))
     normalizer = normalizer or Normalizer()
     mean = np.asarray(mean, dtype=float)
-    if len(mean) < 12:
-        raise InputError(f"diagnose: {len(mean)} poses; at least 12 are needed")
+    if len(mean) == 0:
+        raise InputError("diagnose: no still window in the recording")
+    if len(mean) < 12:  # too few orientations for the base model: what soaks can say, never a refusal
+        return soak_only_report(mean, sd, count, t_s, temp_c, normalizer, config)
     t_s = np.asarray(t_s, dtype=float)
     temp = None if temp_c is None else np.asarray(temp_c, dtype=float)
     if temp is not None and not np.all(np.isfinite(temp)):
@@ -435,6 +437,13 @@ def diagnose_poses(
         "extended_model": extended_model,
         "gain": gain,
     }
+    # soaks (one orientation, changing temperature): what they say about the temperature
+    # terms, beside the multi-pose analysis. On the raw (normalised) means: their drift is
+    # the model's own raw-unit tb, and it does not depend on a base fit that a recording
+    # with few orientations cannot pin down.
+    from selfcal.soak import soak_report
+
+    out["soaks"] = soak_report(data.t_s, data.u, _soak_inputs(data.u, sd, count, normalizer), data.temp_c)
     if arrays is not None:
         out["_arrays"] = arrays
     return out
@@ -443,6 +452,28 @@ def diagnose_poses(
 def _f(x) -> float | None:
     x = float(x)
     return x if np.isfinite(x) else None
+
+
+def _soak_inputs(mean_u: np.ndarray, sd, count, normalizer) -> np.ndarray:
+    """Variance (g²) of each window mean per axis, with the fit's 0.3 mg floor."""
+    count = np.maximum(np.asarray(count, float), 1.0)
+    sd_u = np.full_like(mean_u, 2e-3) if sd is None else np.asarray(sd, float) / normalizer.scale
+    return sd_u**2 / count[:, None] + (0.3e-3) ** 2
+
+
+def soak_only_report(mean, sd, count, t_s, temp_c, normalizer, config) -> dict:
+    """The report for a recording with too few orientations for the base model (< 12 poses):
+    the soaks it holds and what they determine, on the raw (normalised) means."""
+    from selfcal.config import section
+    from selfcal.soak import SoakConfig, soak_report
+
+    normalizer = normalizer or Normalizer()
+    u = normalizer.to_u(np.asarray(mean, float))
+    soaks = soak_report(np.asarray(t_s, float), u, _soak_inputs(u, sd, count, normalizer), temp_c,
+                        SoakConfig(**section(config, "soak")) if section(config, "soak") else None)
+    return {"kind": "soaks_only", "n_poses": int(len(u)),
+            "why": f"{len(u)} poses: the base model needs 12 or more orientations; soaks need only one",
+            "soaks": soaks, "cause": soaks["answer"]}
 
 
 def diagnose_recording(rec, config: dict | None = None, base_model: str = "affine9",

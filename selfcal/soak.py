@@ -10,9 +10,15 @@ covariance and an honest statement of what one orientation can determine.
 Model, for the calibrated window means ``a_k`` (g, shape (k, 3)) at temperatures
 ``T_k`` (°C), ``dT_k = T_k - T_ref``:
 
-* ``temperature_bias``:  ``a_k = g - dT_k * tb``            (tb: 3 offsets, g/°C)
-* ``temperature_scale``: ``a_k = g + dT_k * diag(g) * ts``   (ts: 3 relative scales, 1/°C)
+* ``temperature_bias``:  ``a_k = g + dT_k * tb``            (tb: 3 offsets, g/°C)
+* ``temperature_scale``: ``a_k = g - dT_k * diag(g) * ts``   (ts: 3 relative scales, 1/°C)
 * ``temperature_bias+scale``: both (6 terms, of which one orientation sees 3 combinations)
+
+These are the error model's terms (``selfcal.models``: offset ``b + tb dT``, scales
+``s (1 + ts dT)``). Given the *raw* window means (``diagnose`` passes them, normalised
+to ~g), the bias drift is exactly the model's raw-unit ``tb``, and the scale drift is
+``-diag(g) ts dT`` to first order for a near-unit sensor; given base-calibrated means,
+``tb`` comes out in the calibrated frame (``A tb``).
 
 ``g`` (the orientation, 3 numbers: its norm is the base model's business) is free.
 The terms have the datasheet prior (bias 1 mg/°C, scale 300 ppm/°C by default); a
@@ -133,7 +139,7 @@ def _names(model: str) -> list[str]:
 def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float, *,
              model: str = "temperature_bias", t_ref_c: float | None = None,
              prior_bias_g_per_c: float = PRIOR_BIAS_G_PER_C, prior_scale_per_c: float = PRIOR_SCALE_PER_C,
-             alpha: float = 0.01) -> SoakFit:
+             alpha: float = 0.01, frame: str = "vector") -> SoakFit:
     """Fit the temperature terms of one soak.
 
     Parameters
@@ -144,6 +150,11 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
     model : one of ``SOAK_MODELS``
     t_ref_c : reference temperature (°C); default the soak's mean
     alpha : false-alarm rate of the "any temperature term" test
+    frame : ``vector`` fits the 3-vector drift (a clamped device: every bias tempco from one
+        soak); ``norm`` fits only the drift along gravity, which a slow re-settling rotation
+        of the device cannot fake (one combination per soak; several orientations combined
+        determine more). Real soaks (a band on a table, an insole set down) re-settle by
+        tenths of a degree, i.e. mg across gravity: use ``norm`` for them.
 
     Returns a :class:`SoakFit`; never raises for a soak too small to tell: its terms are
     then undetermined and its effect ``none``, with a note saying why.
@@ -162,42 +173,51 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
     p = len(names)
     g0 = np.mean(a, axis=0)
     g0 = g0 / np.linalg.norm(g0)
-    # design: unknowns (g (3), terms (p)); rows k*3 (axis-major per window)
     blocks = []
     if "bias" in model:
-        blocks.append(-dt[:, None, None] * np.eye(3)[None])                 # (k, 3, 3)
+        blocks.append(dt[:, None, None] * np.eye(3)[None])                  # (k, 3, 3)
     if "scale" in model:
-        blocks.append(dt[:, None, None] * np.diag(g0)[None])                 # (k, 3, 3)
+        blocks.append(-dt[:, None, None] * np.diag(g0)[None])                # (k, 3, 3)
     j_terms = np.concatenate(blocks, axis=2)                                 # (k, 3, p)
-    x = np.concatenate([np.broadcast_to(np.eye(3), (k, 3, 3)), j_terms], axis=2).reshape(3 * k, 3 + p)
-    y = a.reshape(3 * k)
-    w = 1.0 / np.maximum(var.reshape(3 * k), 1e-18)
+    if frame == "vector":  # unknowns: g (3) and the terms; 3 rows per window
+        m, q = 3, 3
+        x = np.concatenate([np.broadcast_to(np.eye(3), (k, 3, 3)), j_terms], axis=2).reshape(3 * k, 3 + p)
+        y = a.reshape(3 * k)
+        v_rows = var.reshape(3 * k)
+    elif frame == "norm":  # unknowns: |g| (1) and the terms; the component along gravity only
+        m, q = 1, 1
+        x = np.concatenate([np.ones((k, 1)), np.einsum("i,kip->kp", g0, j_terms)], axis=1)
+        y = a @ g0
+        v_rows = var @ (g0**2)
+    else:
+        raise ValueError(f"frame {frame!r}: 'vector' or 'norm'")
+    w = 1.0 / np.maximum(v_rows, 1e-18)
     prior_sd = np.array([prior_bias_g_per_c if n.startswith("tb") else prior_scale_per_c for n in names])
-    prior_prec = np.concatenate([np.zeros(3), 1.0 / prior_sd**2])
+    prior_prec = np.concatenate([np.zeros(q), 1.0 / prior_sd**2])
     xtw = x.T * w
     fisher = xtw @ x
     theta = np.linalg.solve(fisher + np.diag(prior_prec), xtw @ y)
-    res = (y - x @ theta).reshape(k, 3)
+    res = (y - x @ theta).reshape(k, m)
     # long-run variance of the standardised residuals (serially correlated windows): the
     # residuals are white noise plus a slowly settling part, an ARMA(1,1) whose
     # autocovariances decay as r^(l-1) after lag 1; r = gamma2 / gamma1. The covariance
     # is scaled by gamma0 + 2 gamma1 / (1 - r), never down.
-    z = res / np.sqrt(var)
-    dof = max(3 * k - 3 - p, 1)
+    z = res / np.sqrt(v_rows.reshape(k, m))
+    dof = max(m * k - q - p, 1)
     gamma0 = float(np.sum(z**2)) / dof
     vf = max(1.0, gamma0)
     lag1, inflate = 0.0, vf
     if k >= 6:
-        gamma1 = float(np.sum(z[1:] * z[:-1])) / (3 * (k - 1))
-        gamma2 = float(np.sum(z[2:] * z[:-2])) / (3 * (k - 2))
+        gamma1 = float(np.sum(z[1:] * z[:-1])) / (m * (k - 1))
+        gamma2 = float(np.sum(z[2:] * z[:-2])) / (m * (k - 2))
         if gamma1 > 0:
             r = float(np.clip(gamma2 / gamma1, 0.0, 0.95))
             lag1 = gamma1 / gamma0 if gamma0 > 0 else 0.0
             inflate = max(vf, gamma0 + 2.0 * gamma1 / (1.0 - r))
     post = np.linalg.inv(fisher / inflate + np.diag(prior_prec))
     theta = np.linalg.solve(fisher / inflate + np.diag(prior_prec), xtw @ y / inflate)
-    cov = post[3:, 3:]
-    coef = theta[3:]
+    cov = post[q:, q:]
+    coef = theta[q:]
     std = np.sqrt(np.diag(cov))
     determined = std <= DETERMINED_RATIO * prior_sd
     # undetermined combinations: eigen-directions of the prior-whitened information of the
@@ -224,6 +244,76 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
     if p > 3:
         notes.append("one orientation sees 3 combinations of the 6 bias and scale terms; the rest stays at the prior")
     return SoakFit(model=model, names=names, coef=coef, std=std, cov=cov, determined=determined,
-                   undetermined_directions=undet, orientation=theta[:3], t_ref_c=t_ref, dtemp_c=float(np.ptp(temp)),
+                   undetermined_directions=undet,
+                   orientation=theta[:3] if frame == "vector" else g0 * theta[0], t_ref_c=t_ref, dtemp_c=float(np.ptp(temp)),
                    n_windows=k, chi2_effect=chi2, dof_effect=dof_e, effect=effect, variance_factor=vf, lag1=lag1,
                    notes=notes)
+
+
+def combine(fits: list[SoakFit]) -> dict | None:
+    """One estimate of the shared terms from several soaks of one model (independent soaks):
+    their data information added, the prior counted once. None without a fit."""
+    if not fits:
+        return None
+    names = fits[0].names
+    prior_sd = np.array([PRIOR_BIAS_G_PER_C if n.startswith("tb") else PRIOR_SCALE_PER_C for n in names])
+    prior_prec = np.diag(1.0 / prior_sd**2)
+    precision = prior_prec.copy()
+    weighted = np.zeros(len(names))
+    for f in fits:
+        info = np.linalg.inv(f.cov)
+        precision += info - prior_prec
+        weighted += info @ f.coef
+    cov = np.linalg.inv(precision)
+    coef = cov @ weighted
+    std = np.sqrt(np.diag(cov))
+    conv = np.array([1e3 if n.startswith("tb") else 1e6 for n in names])
+    return {"coef": dict(zip(names, (coef * conv).round(6).tolist())),
+            "std": dict(zip(names, (std * conv).round(6).tolist())),
+            "determined": [n for n, s, p in zip(names, std, prior_sd) if s <= DETERMINED_RATIO * p],
+            "n_soaks": len(fits)}
+
+
+def soak_report(t_s: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray, temp_c: np.ndarray | None,
+                config: SoakConfig | None = None, model: str = "temperature_bias", frame: str = "norm") -> dict:
+    """Soaks among still windows and what they determine (JSON-ready).
+
+    Parameters
+    ----------
+    t_s : (k,) s; mean_g : (k, 3) g, base-calibrated window means; var_g2 : (k, 3) or (k,) g²;
+    temp_c : (k,) °C or None
+    """
+    if temp_c is None or not np.any(np.isfinite(np.asarray(temp_c, float))):
+        return {"found": 0, "soaks": [], "combined": None, "answer": "no temperature: soaks cannot be looked for"}
+    order = np.argsort(t_s, kind="stable")
+    t = np.asarray(t_s, float)[order]
+    m = np.asarray(mean_g, float)[order]
+    v = np.asarray(var_g2, float)[order]
+    temp = np.asarray(temp_c, float)[order]
+    cfg = config or SoakConfig()
+    runs = find_soaks(t, m, temp, cfg)
+    fits, rows = [], []
+    for r in runs:
+        f = fit_soak(temp[r], m[r], v[r], model=model, frame=frame)
+        fits.append(f)
+        rows.append(dict(f.to_dict(), t_start_s=float(t[r.start]), t_end_s=float(t[r.stop - 1])))
+    comb = combine(fits)
+    spans = [f.dtemp_c for f in fits]
+    if not runs:
+        answer = (f"no soak: no run of >= {cfg.min_windows} still windows in one orientation "
+                  f"(within {cfg.max_angle_deg:g} deg) spanning >= {cfg.min_dtemp_c:g} degC")
+    elif not comb["determined"]:
+        answer = (f"not determinable: {len(runs)} soak(s) of {min(spans):.1f}-{max(spans):.1f} degC; the "
+                  f"temperature change is too small for the noise, even combined")
+    else:
+        det = comb["determined"]
+        cw = np.array([comb["coef"][n] for n in det])
+        sd = np.array([comb["std"][n] for n in det])
+        chi2 = float(np.sum((cw / sd) ** 2))  # combined, determined terms (their correlations are small)
+        terms = ", ".join(f"{n} {comb['coef'][n]:+.3f} ± {comb['std'][n]:.3f}" for n in det)
+        if chi2 > float(chdtri(len(det), 0.01)):
+            answer = f"{model}: {terms} ({'mg' if model == 'temperature_bias' else 'mg or ppm'}/degC, {len(runs)} soak(s) combined)"
+        else:
+            answer = f"none: {terms} (not significant at 1 %, {len(runs)} soak(s) combined)"
+        comb["chi2"], comb["effect"] = chi2, answer.split(":")[0]
+    return {"found": len(runs), "frame": frame, "soaks": rows, "combined": comb, "answer": answer}

@@ -38,6 +38,14 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(report))
         return 0
+    if report.get("kind") == "soaks_only":
+        print(f"{args.recording}: {report['why']}")
+        for sk in report["soaks"]["soaks"]:
+            print(f"  soak {sk['t_start_s']:.0f}-{sk['t_end_s']:.0f} s, {sk['dtemp_c']:.1f} degC, "
+                  f"{sk['n_windows']} windows: {sk['effect']}  "
+                  + ", ".join(f"{n} {sk['coef'][n]:+.3f} ± {sk['std'][n]:.3f}" for n in sk["determined"]))
+        print(f"  cause: {report['cause']}")
+        return 0
     g = report["gain"]
     print(f"{args.recording}: {report['n_poses']} poses; base {report['base_model']['model']} "
           f"RMS {report['base_model']['residual_rms_mg']:.3f} mg "
@@ -45,6 +53,7 @@ def run(args) -> int:
     for e in report["effects"]:
         print(f"  {e['name']:<19} {'SELECTED' if e['selected'] else ('supported' if e.get('supported') else '-'):<10} {e['evidence']}")
     print(f"  cause: {report['cause']}" + (f" (ambiguous: {report['ambiguous']})" if report.get("ambiguous") else ""))
+    print(f"  soaks: {report['soaks']['answer']}")
     print(f"  held-out RMS {g['heldout_rms_mg_before']:.3f} -> "
           f"{'%.3f' % g['heldout_rms_mg_after'] if g['heldout_rms_mg_after'] is not None else '-'} mg ({g['split']})")
     if args.report:
