@@ -51,6 +51,9 @@ def _check_not_cut(path: Path, fmt: str) -> None:
     (A cut ``.gt3x`` is a broken zip archive, which actfast already refuses.)
     """
     if path.suffix.lower() == ".cwa":
+        with open(path, "rb") as fh:
+            if fh.read(2) != b"MD":  # not an Axivity file at all (garbage, another format)
+                raise InputError(f"{path}: cannot decode as {fmt}: it does not start with the 'MD' header block")
         size = path.stat().st_size
         if size % CWA_SECTOR_BYTES:
             raise InputError(
