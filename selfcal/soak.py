@@ -104,7 +104,7 @@ class SoakFit:
     n_windows: int
     chi2_effect: float        # evidence for any temperature term (determined part)
     dof_effect: int
-    effect: str               # the model's name, or "none" (not significant at ``alpha``)
+    effect: str               # the model's name, "none" (not significant at ``alpha``) or "undetermined"
     variance_factor: float
     lag1: float
     notes: list[str] = field(default_factory=list)
@@ -237,8 +237,8 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
         chi2 = float(np.sum(proj**2 * evals[good]))
         dof_e = int(good.sum())
         effect = model if chi2 > float(chdtri(dof_e, alpha)) else "none"
-    else:
-        chi2, dof_e, effect = 0.0, 0, "none"
+    else:  # nothing determined: say so, rather than "none"
+        chi2, dof_e, effect = 0.0, 0, "undetermined"
         notes.append(f"not determinable: a temperature span of {np.ptp(temp):.2f} degC is too small for the "
                      f"noise of {k} windows")
     if p > 3:

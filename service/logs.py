@@ -82,4 +82,16 @@ def uvicorn_log_config(level: str, fmt: str) -> dict[str, Any] | None:
             "uvicorn.access": {"handlers": ["default"], "level": level.upper(), "propagate": False},
             "selfcal": {"handlers": ["default"], "level": level.upper(), "propagate": False},
         },
+        "root": {"handlers": ["default"], "level": "WARNING"},  # psycopg, asyncio, the rest: JSON too
     }
+
+
+def redact_url(url: str) -> str:
+    """A database URL fit for logs: no user, no password, no query (``host:port/db``)."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    if not parts.scheme or not parts.hostname:
+        return url
+    port = f":{parts.port}" if parts.port else ""
+    return f"{parts.scheme}://{parts.hostname}{port}{parts.path}"

@@ -51,7 +51,7 @@ def test_what_one_orientation_cannot_determine_is_said():
     assert len(both.undetermined_directions) >= 3  # 6 terms, 3 observable combinations
     assert any("3 combinations" in n for n in both.notes)
     tiny = fit_soak(np.linspace(25.0, 25.001, 10), mean[:10], var[:10])  # no temperature change
-    assert tiny.effect == "none" and not tiny.determined.any()
+    assert tiny.effect == "undetermined" and not tiny.determined.any()
     assert any("not determinable" in n for n in tiny.notes)
 
 

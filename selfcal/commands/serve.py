@@ -77,7 +77,9 @@ def run(args: argparse.Namespace) -> int:
         except ModuleNotFoundError as exc:
             raise InputError("a postgresql:// database needs the 'postgres' extra "
                              "(pip install 'selfcal[postgres]')") from exc
-    shown = settings.db_path.split("@")[-1] if postgres else settings.db_path  # no credentials in logs
+    from selfcal_service.logs import redact_url
+
+    shown = redact_url(settings.db_path) if postgres else settings.db_path  # no credentials in logs
     print(
         f"selfcal serve: http://{settings.host}:{settings.port} db={shown} "
         f"({'postgresql' if postgres else 'sqlite, synchronous=' + settings.sqlite_synchronous}, "

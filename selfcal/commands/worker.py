@@ -35,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from selfcal.errors import InputError
 
     try:
+        from selfcal_service.logs import redact_url
         from selfcal_service.main import make_worker
         from selfcal_service.metrics import Metrics
         from selfcal_service.pg_store import PostgresStore, is_postgres_url
@@ -71,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     worker.start()
-    print(f"selfcal worker {worker.lease.owner}: db={settings.db_path.split('@')[-1]}, "
+    print(f"selfcal worker {worker.lease.owner}: db={redact_url(settings.db_path)}, "
           f"threads={settings.worker_threads}, lease {settings.lease_ttl_s:g} s", file=sys.stderr, flush=True)
     t0 = time.monotonic()
     try:
