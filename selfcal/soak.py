@@ -111,8 +111,8 @@ class SoakFit:
 
     def to_dict(self) -> dict:
         """JSON-ready: bias terms in mg/°C, scale terms in ppm/°C."""
-        conv = np.array([1e3 if n.startswith("tb") else 1e6 for n in self.names])
-        unit = {n: ("mg/degC" if n.startswith("tb") else "ppm/degC") for n in self.names}
+        conv = np.array([1e3 if n[:2] in ("tb", "db") else 1e6 for n in self.names])
+        unit = {n: {"tb": "mg/degC", "db": "mg/day"}.get(n[:2], "ppm/degC") for n in self.names}
         return {
             "model": self.model, "effect": self.effect, "units": unit,
             "coef": dict(zip(self.names, (self.coef * conv).round(6).tolist())),
@@ -139,7 +139,8 @@ def _names(model: str) -> list[str]:
 def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float, *,
              model: str = "temperature_bias", t_ref_c: float | None = None,
              prior_bias_g_per_c: float = PRIOR_BIAS_G_PER_C, prior_scale_per_c: float = PRIOR_SCALE_PER_C,
-             alpha: float = 0.01, frame: str = "vector") -> SoakFit:
+             alpha: float = 0.01, frame: str = "vector", t_s: np.ndarray | None = None,
+             prior_drift_g_per_day: float = 2e-3) -> SoakFit:
     """Fit the temperature terms of one soak.
 
     Parameters
@@ -150,6 +151,9 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
     model : one of ``SOAK_MODELS``
     t_ref_c : reference temperature (°C); default the soak's mean
     alpha : false-alarm rate of the "any temperature term" test
+    t_s : (k,) s — window times. Given, an offset drift in time (``db``, g/day, the
+        ``time_drift_bias`` terms) is fitted beside the temperature terms: an exponential
+        cooling separates the two, a linear temperature ramp cannot (the note says so).
     frame : ``vector`` fits the 3-vector drift (a clamped device: every bias tempco from one
         soak); ``norm`` fits only the drift along gravity, which a slow re-settling rotation
         of the device cannot fake (one combination per soak; several orientations combined
@@ -169,7 +173,7 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
     var = np.broadcast_to(np.asarray(var_g2, float).reshape(-1, 1) if np.ndim(var_g2) == 1 else var_g2, (k, 3))
     t_ref = float(np.mean(temp)) if t_ref_c is None else float(t_ref_c)
     dt = temp - t_ref
-    names = _names(model)
+    names = _names(model) + (["dbx", "dby", "dbz"] if t_s is not None else [])
     p = len(names)
     g0 = np.mean(a, axis=0)
     g0 = g0 / np.linalg.norm(g0)
@@ -178,6 +182,9 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
         blocks.append(dt[:, None, None] * np.eye(3)[None])                  # (k, 3, 3)
     if "scale" in model:
         blocks.append(-dt[:, None, None] * np.diag(g0)[None])                # (k, 3, 3)
+    if t_s is not None:
+        days = (np.asarray(t_s, float) - float(np.mean(t_s))) / 86400.0
+        blocks.append(days[:, None, None] * np.eye(3)[None])                # (k, 3, 3)
     j_terms = np.concatenate(blocks, axis=2)                                 # (k, 3, p)
     if frame == "vector":  # unknowns: g (3) and the terms; 3 rows per window
         m, q = 3, 3
@@ -192,7 +199,8 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
     else:
         raise ValueError(f"frame {frame!r}: 'vector' or 'norm'")
     w = 1.0 / np.maximum(v_rows, 1e-18)
-    prior_sd = np.array([prior_bias_g_per_c if n.startswith("tb") else prior_scale_per_c for n in names])
+    prior_sd = np.array([prior_bias_g_per_c if n.startswith("tb") else prior_drift_g_per_day if n.startswith("db")
+                         else prior_scale_per_c for n in names])
     prior_prec = np.concatenate([np.zeros(q), 1.0 / prior_sd**2])
     xtw = x.T * w
     fisher = xtw @ x
@@ -241,7 +249,18 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
         chi2, dof_e, effect = 0.0, 0, "undetermined"
         notes.append(f"not determinable: a temperature span of {np.ptp(temp):.2f} degC is too small for the "
                      f"noise of {k} windows")
-    if p > 3:
+    if t_s is not None:  # can this soak tell temperature from time?
+        sd_all = np.sqrt(np.diag(cov))
+        corr = cov / np.outer(sd_all, sd_all)
+        ti = [i for i, n in enumerate(names) if n.startswith("tb")]
+        di = [i for i, n in enumerate(names) if n.startswith("db")]
+        worst = max((abs(corr[i, j]) for i in ti for j in di), default=0.0)
+        if worst > 0.95:
+            notes.append(f"temperature and time drift are confounded in this soak (correlation {worst:.2f}: the "
+                         "temperature changes about linearly in time)")
+        elif np.any(determined[ti]):
+            notes.append(f"temperature terms separated from time drift (largest correlation {worst:.2f})")
+    if len([n for n in names if not n.startswith("db")]) > 3:
         notes.append("one orientation sees 3 combinations of the 6 bias and scale terms; the rest stays at the prior")
     return SoakFit(model=model, names=names, coef=coef, std=std, cov=cov, determined=determined,
                    undetermined_directions=undet,
@@ -256,7 +275,8 @@ def combine(fits: list[SoakFit]) -> dict | None:
     if not fits:
         return None
     names = fits[0].names
-    prior_sd = np.array([PRIOR_BIAS_G_PER_C if n.startswith("tb") else PRIOR_SCALE_PER_C for n in names])
+    prior_sd = np.array([PRIOR_BIAS_G_PER_C if n.startswith("tb") else 2e-3 if n.startswith("db")
+                         else PRIOR_SCALE_PER_C for n in names])
     prior_prec = np.diag(1.0 / prior_sd**2)
     precision = prior_prec.copy()
     weighted = np.zeros(len(names))
@@ -267,7 +287,7 @@ def combine(fits: list[SoakFit]) -> dict | None:
     cov = np.linalg.inv(precision)
     coef = cov @ weighted
     std = np.sqrt(np.diag(cov))
-    conv = np.array([1e3 if n.startswith("tb") else 1e6 for n in names])
+    conv = np.array([1e3 if n[:2] in ("tb", "db") else 1e6 for n in names])
     return {"coef": dict(zip(names, (coef * conv).round(6).tolist())),
             "std": dict(zip(names, (std * conv).round(6).tolist())),
             "determined": [n for n, s, p in zip(names, std, prior_sd) if s <= DETERMINED_RATIO * p],

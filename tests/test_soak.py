@@ -123,3 +123,23 @@ def test_every_real_recording_with_temperature_says_whether_it_holds_soaks():
         assert soaks["answer"].split(":")[0] in ("temperature_bias", "none", "not determinable", "no soak"), soaks
         if path.parent.name == "ggir-wrist-84h":
             assert soaks["found"] >= 5  # the 84-h band lies still while it warms or cools, many times
+
+
+def test_time_drift_is_separated_from_temperature_when_the_cooling_is_exponential_and_not_on_a_ramp():
+    rng = np.random.default_rng(10)
+    n = 1800  # 2-s windows, 1 h
+    t = np.arange(n) * 2.0
+    g = np.array([0.0, 0.0, 1.0])
+    tb, db = np.array([0.0, 0.0, 1e-3]), np.array([0.0, 0.0, 4e-3])  # 1 mg/degC, 4 mg/day
+    var = np.full(n, (0.2e-3) ** 2)
+    for shape, separable in (("exponential", True), ("ramp", False)):
+        temp = 25.0 + (10.0 * np.exp(-t / 900.0) if shape == "exponential" else -10.0 * t / t[-1])
+        mean = g + np.outer(temp - temp.mean(), tb) + np.outer((t - t.mean()) / 86400.0, db) \
+            + rng.normal(0, 0.2e-3, (n, 3))
+        fit = fit_soak(temp, mean, var, t_s=t, frame="vector")
+        d = fit.to_dict()
+        if separable:
+            assert "tbz" in d["determined"] and abs(d["coef"]["tbz"] - 1.0) <= 3 * d["std"]["tbz"], d
+            assert any("separated" in x for x in d["notes"]), d["notes"]
+        else:
+            assert any("confounded" in x for x in d["notes"]), d["notes"]
