@@ -29,7 +29,7 @@ def main(argv=None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from selfcal.diagnosis import _soak_inputs
+    from selfcal.diagnosis import window_mean_variance
     from selfcal.pipeline import path_poses
     from selfcal.soak import find_soaks, fit_soak
 
@@ -38,7 +38,7 @@ def main(argv=None) -> int:
     t = poses["t_s"][order]
     u = normalizer.to_u(poses["mean"])[order]
     temp = poses["temp_c"][order]
-    var = _soak_inputs(u, None if poses["sd"] is None else poses["sd"][order], poses["count"][order], normalizer)
+    var = window_mean_variance(u, None if poses["sd"] is None else poses["sd"][order], poses["count"][order], normalizer)
     runs = find_soaks(t, u, temp)
     print(f"{args.recording}: {len(runs)} soaks")
     best, best_info = None, -1.0

@@ -443,7 +443,7 @@ def diagnose_poses(
     # with few orientations cannot pin down.
     from selfcal.soak import soak_report
 
-    out["soaks"] = soak_report(data.t_s, data.u, _soak_inputs(data.u, sd, count, normalizer), data.temp_c)
+    out["soaks"] = soak_report(data.t_s, data.u, window_mean_variance(data.u, sd, count, normalizer), data.temp_c)
     if arrays is not None:
         out["_arrays"] = arrays
     return out
@@ -454,7 +454,7 @@ def _f(x) -> float | None:
     return x if np.isfinite(x) else None
 
 
-def _soak_inputs(mean_u: np.ndarray, sd, count, normalizer) -> np.ndarray:
+def window_mean_variance(mean_u: np.ndarray, sd, count, normalizer) -> np.ndarray:
     """Variance (g²) of each window mean per axis, with the fit's 0.3 mg floor."""
     count = np.maximum(np.asarray(count, float), 1.0)
     sd_u = np.full_like(mean_u, 2e-3) if sd is None else np.asarray(sd, float) / normalizer.scale
@@ -469,7 +469,7 @@ def soak_only_report(mean, sd, count, t_s, temp_c, normalizer, config) -> dict:
 
     normalizer = normalizer or Normalizer()
     u = normalizer.to_u(np.asarray(mean, float))
-    soaks = soak_report(np.asarray(t_s, float), u, _soak_inputs(u, sd, count, normalizer), temp_c,
+    soaks = soak_report(np.asarray(t_s, float), u, window_mean_variance(u, sd, count, normalizer), temp_c,
                         SoakConfig(**section(config, "soak")) if section(config, "soak") else None)
     return {"kind": "soaks_only", "n_poses": int(len(u)),
             "why": f"{len(u)} poses: the base model needs 12 or more orientations; soaks need only one",

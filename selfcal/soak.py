@@ -41,6 +41,18 @@ from scipy.special import chdtri
 #: datasheet prior sds of the temperature terms
 PRIOR_BIAS_G_PER_C = 1e-3
 PRIOR_SCALE_PER_C = 300e-6
+PRIOR_DRIFT_G_PER_DAY = 2e-3  # as [fit] prior_drift_g_per_day
+
+
+def _prior_sd(names: list[str], bias: float = PRIOR_BIAS_G_PER_C, scale: float = PRIOR_SCALE_PER_C,
+              drift: float = PRIOR_DRIFT_G_PER_DAY) -> np.ndarray:
+    """Prior sd of each term (tb*: g/°C, ts*: 1/°C, db*: g/day)."""
+    return np.array([{"tb": bias, "ts": scale, "db": drift}[n[:2]] for n in names])
+
+
+def _display_scale(names: list[str]) -> np.ndarray:
+    """Factor to the reported units: mg/°C and mg/day for offsets, ppm/°C for scales."""
+    return np.array([1e6 if n.startswith("ts") else 1e3 for n in names])
 DETERMINED_RATIO = 0.3
 SOAK_MODELS = ("temperature_bias", "temperature_scale", "temperature_bias+scale")
 
@@ -111,7 +123,7 @@ class SoakFit:
 
     def to_dict(self) -> dict:
         """JSON-ready: bias terms in mg/°C, scale terms in ppm/°C."""
-        conv = np.array([1e3 if n[:2] in ("tb", "db") else 1e6 for n in self.names])
+        conv = _display_scale(self.names)
         unit = {n: {"tb": "mg/degC", "db": "mg/day"}.get(n[:2], "ppm/degC") for n in self.names}
         return {
             "model": self.model, "effect": self.effect, "units": unit,
@@ -140,7 +152,7 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
              model: str = "temperature_bias", t_ref_c: float | None = None,
              prior_bias_g_per_c: float = PRIOR_BIAS_G_PER_C, prior_scale_per_c: float = PRIOR_SCALE_PER_C,
              alpha: float = 0.01, frame: str = "vector", t_s: np.ndarray | None = None,
-             prior_drift_g_per_day: float = 2e-3) -> SoakFit:
+             prior_drift_g_per_day: float = PRIOR_DRIFT_G_PER_DAY) -> SoakFit:
     """Fit the temperature terms of one soak.
 
     Parameters
@@ -199,8 +211,7 @@ def fit_soak(temp_c: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray | float,
     else:
         raise ValueError(f"frame {frame!r}: 'vector' or 'norm'")
     w = 1.0 / np.maximum(v_rows, 1e-18)
-    prior_sd = np.array([prior_bias_g_per_c if n.startswith("tb") else prior_drift_g_per_day if n.startswith("db")
-                         else prior_scale_per_c for n in names])
+    prior_sd = _prior_sd(names, prior_bias_g_per_c, prior_scale_per_c, prior_drift_g_per_day)
     prior_prec = np.concatenate([np.zeros(q), 1.0 / prior_sd**2])
     xtw = x.T * w
     fisher = xtw @ x
@@ -275,8 +286,7 @@ def combine(fits: list[SoakFit]) -> dict | None:
     if not fits:
         return None
     names = fits[0].names
-    prior_sd = np.array([PRIOR_BIAS_G_PER_C if n.startswith("tb") else 2e-3 if n.startswith("db")
-                         else PRIOR_SCALE_PER_C for n in names])
+    prior_sd = _prior_sd(names)
     prior_prec = np.diag(1.0 / prior_sd**2)
     precision = prior_prec.copy()
     weighted = np.zeros(len(names))
@@ -287,7 +297,7 @@ def combine(fits: list[SoakFit]) -> dict | None:
     cov = np.linalg.inv(precision)
     coef = cov @ weighted
     std = np.sqrt(np.diag(cov))
-    conv = np.array([1e3 if n[:2] in ("tb", "db") else 1e6 for n in names])
+    conv = _display_scale(names)
     return {"coef": dict(zip(names, (coef * conv).round(6).tolist())),
             "std": dict(zip(names, (std * conv).round(6).tolist())),
             "determined": [n for n, s, p in zip(names, std, prior_sd) if s <= DETERMINED_RATIO * p],

@@ -287,6 +287,11 @@ def open_store(settings: Settings) -> Storage:
                        group_commit_max_ops=settings.group_commit_max_ops)
 
 
+def expected_refit_threads(settings: Settings) -> int:
+    """Refit threads a healthy process runs: none in an API-only process (``--no-refit``)."""
+    return settings.worker_threads if settings.refit_in_process else 0
+
+
 def worker_owner_id() -> str:
     """A unique lease owner id for this process: host, pid and a random suffix."""
     import os
@@ -688,7 +693,7 @@ def create_app(
         worker: RefitWorker = request.app.state.worker
         db = await _read(store, store.ping)
         alive = worker.alive()
-        expected = settings.worker_threads if settings.refit_in_process else 0  # --no-refit: API only
+        expected = expected_refit_threads(settings)
         ok = db and alive == expected
         return _json(
             {"status": "ok" if ok else "degraded", "db": db, "workers_alive": alive, "pending_devices": worker.queue_depth()},
@@ -710,7 +715,7 @@ def create_app(
         except Exception as exc:  # noqa: BLE001 - readiness reports, never raises
             backlog = -1
             problem = problem or f"cannot read the backlog: {exc}"
-        expected = settings.worker_threads if settings.refit_in_process else 0
+        expected = expected_refit_threads(settings)
         ready = (problem is None and alive == expected
                  and 0 <= backlog <= settings.max_backlog_batches)
         return _json({"ready": ready, "storage_writable": problem is None, "storage_problem": problem,

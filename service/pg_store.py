@@ -23,7 +23,6 @@ processes and refit workers share one database:
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -32,15 +31,19 @@ from typing import Any
 
 from selfcal_service.group_commit import GroupCommitStore
 from selfcal_service.storage import (
+    DEVICE_COLUMNS,
+    VERSION_COLUMNS,
     ConflictError,
     DeviceRecord,
     IngestResult,
-    NewVersion,
     PendingBatch,
     Progress,
     SeqConflict,
     SeqJump,
     VersionRecord,
+    device_from_row,
+    dumps_json,
+    version_from_row,
 )
 
 log = logging.getLogger("selfcal.service.postgres")
@@ -96,44 +99,12 @@ _SCHEMA = [
 #: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
 MIGRATIONS: dict[int, list[str]] = {}
 
-_COLS = [
-    "device_id", "batches_stored", "processed_seq", "samples_processed", "calibrator_state",
-    "calibrator_status", "last_refit", "feed_state", "current_version", "updated_at",
-    "rejected_batches", "rejected_samples", "last_rejection", "state_rev",
-]
+_COLS = [*DEVICE_COLUMNS, "state_rev"]
 _DEVICE_COLS = ", ".join(f"d.{c}" for c in _COLS)
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in _COLS)  # no state
 _N = len(_COLS)
-_VERSION_COLS = "version, status, source, created_at, calibration, provenance"
+
 _NOW = "extract(epoch from clock_timestamp())"  # the database's clock, seconds since the epoch
-
-
-def _device(row: tuple) -> DeviceRecord:
-    return DeviceRecord(
-        device_id=row[0],
-        batches_stored=row[1],
-        processed_seq=row[2],
-        samples_processed=row[3],
-        calibrator_state=row[4],
-        calibrator_status=row[5],
-        last_refit=json.loads(row[6]) if row[6] else None,
-        feed_state=json.loads(row[7]) if row[7] else {},
-        current_version=row[8],
-        updated_at=row[9],
-        rejected_batches=row[10] or 0,
-        rejected_samples=row[11] or 0,
-        last_rejection=json.loads(row[12]) if row[12] else None,
-        state_rev=row[13],
-    )
-
-
-def _version(row: tuple) -> VersionRecord:
-    return VersionRecord(version=row[0], status=row[1], source=row[2], created_at=row[3],
-                         calibration=json.loads(row[4]), provenance=json.loads(row[5]))
-
-
-def _dumps(obj: Any) -> str:
-    return json.dumps(obj, separators=(",", ":"), allow_nan=False)
 
 
 def is_postgres_url(db: str) -> bool:
@@ -323,7 +294,7 @@ class PostgresStore(GroupCommitStore):
 
     def load_device(self, device_id: str) -> DeviceRecord | None:
         rows = self._read(f"SELECT {_DEVICE_COLS} FROM devices d WHERE d.device_id = %s", (device_id,))
-        return _device(rows[0]) if rows else None
+        return device_from_row(rows[0]) if rows else None
 
     def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:
         rows = self._read(
@@ -354,7 +325,7 @@ class PostgresStore(GroupCommitStore):
                 conn.execute(
                     "INSERT INTO versions(device_id, version, status, source, created_at, calibration, provenance) "
                     "VALUES (%s, %s, %s, %s, %s, %s, %s)",
-                    (p.device_id, number, v.status, v.source, now, _dumps(v.calibration), _dumps(v.provenance)))
+                    (p.device_id, number, v.status, v.source, now, dumps_json(v.calibration), dumps_json(v.provenance)))
                 numbers.append(number)
             conn.execute(
                 "UPDATE devices SET processed_seq = %s, samples_processed = samples_processed + %s, "
@@ -362,7 +333,7 @@ class PostgresStore(GroupCommitStore):
                 "current_version = COALESCE(%s, current_version), updated_at = %s, state_rev = state_rev + 1 "
                 "WHERE device_id = %s",
                 (p.processed_seq, p.samples_added, p.calibrator_state, p.calibrator_status,
-                 None if p.last_refit is None else _dumps(p.last_refit), _dumps(p.feed_state),
+                 None if p.last_refit is None else dumps_json(p.last_refit), dumps_json(p.feed_state),
                  numbers[-1] if numbers else None, now, p.device_id))
             if p.fed_seqs:
                 conn.execute("UPDATE batches SET state = 1 WHERE device_id = %s AND seq = ANY(%s) AND state = 0",
@@ -377,7 +348,7 @@ class PostgresStore(GroupCommitStore):
                     "UPDATE devices SET rejected_batches = rejected_batches + %s, "
                     "rejected_samples = rejected_samples + %s, last_rejection = %s WHERE device_id = %s",
                     (len(p.rejected), sum(r[1] for r in p.rejected),
-                     _dumps({"seq": q, "reason": reason, "at": now}), p.device_id))
+                     dumps_json({"seq": q, "reason": reason, "at": now}), p.device_id))
             return numbers
 
         op.device_id = p.device_id  # type: ignore[attr-defined]
@@ -432,24 +403,24 @@ class PostgresStore(GroupCommitStore):
         if not rows:
             return None
         row = rows[0]
-        return _device(row[:_N]), (_version(row[_N:]) if row[_N] is not None else None)
+        return device_from_row(row[:_N]), (version_from_row(row[_N:]) if row[_N] is not None else None)
 
     def history(self, device_id: str) -> list[VersionRecord]:
-        rows = self._read(f"SELECT {_VERSION_COLS} FROM versions WHERE device_id = %s ORDER BY version",
+        rows = self._read(f"SELECT {VERSION_COLUMNS} FROM versions WHERE device_id = %s ORDER BY version",
                           (device_id,))
-        return [_version(r) for r in rows]
+        return [version_from_row(r) for r in rows]
 
     def get_version(self, device_id: str, version: int) -> VersionRecord | None:
-        rows = self._read(f"SELECT {_VERSION_COLS} FROM versions WHERE device_id = %s AND version = %s",
+        rows = self._read(f"SELECT {VERSION_COLUMNS} FROM versions WHERE device_id = %s AND version = %s",
                           (device_id, version))
-        return _version(rows[0]) if rows else None
+        return version_from_row(rows[0]) if rows else None
 
     def list_devices(self, after: str | None, limit: int) -> list[tuple[DeviceRecord, str]]:
         rows = self._read(
             f"SELECT {_DEVICE_READ_COLS}, COALESCE(v.status, 'uncalibrated') FROM devices d "
             "LEFT JOIN versions v ON v.device_id = d.device_id AND v.version = d.current_version "
             "WHERE d.device_id > %s ORDER BY d.device_id LIMIT %s", (after or "", limit))
-        return [(_device(r[:_N]), r[_N]) for r in rows]
+        return [(device_from_row(r[:_N]), r[_N]) for r in rows]
 
     def backlog(self) -> int:
         return int(self._read("SELECT COUNT(*) FROM batches WHERE state = 0")[0][0])

@@ -15,7 +15,6 @@ Reads use one connection per thread (WAL readers never wait for the writer).
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import os
 import sqlite3
@@ -23,10 +22,11 @@ import threading
 import time
 from concurrent.futures import Future
 from pathlib import Path
-from typing import Any
 
 from selfcal_service.group_commit import GroupCommitStore
 from selfcal_service.storage import (
+    DEVICE_COLUMNS,
+    VERSION_COLUMNS,
     ConflictError,
     DeviceRecord,
     IngestResult,
@@ -36,6 +36,9 @@ from selfcal_service.storage import (
     SeqConflict,
     SeqJump,
     VersionRecord,
+    device_from_row,
+    dumps_json,
+    version_from_row,
 )
 
 log = logging.getLogger("selfcal.service.sqlite")
@@ -110,49 +113,11 @@ MIGRATIONS = {
     ],
 }
 
-_DEVICE_COLS = (
-    "device_id, batches_stored, processed_seq, samples_processed, calibrator_state, "
-    "calibrator_status, last_refit, feed_state, current_version, updated_at, "
-    "rejected_batches, rejected_samples, last_rejection"
-)
-_N_DEVICE_COLS = len(_DEVICE_COLS.split(","))
+_DEVICE_COLS = ", ".join(DEVICE_COLUMNS)
+_N_DEVICE_COLS = len(DEVICE_COLUMNS)
 # what the read routes select: every device column but the calibrator state, which can be
 # a megabyte for a device worn for weeks (thousands of pose cells) and no read needs
-_DEVICE_READ_COLS = ", ".join(
-    "NULL" if c.strip() == "calibrator_state" else f"d.{c.strip()}" for c in _DEVICE_COLS.split(",")
-)
-
-def _device(row: tuple) -> DeviceRecord:
-    return DeviceRecord(
-        device_id=row[0],
-        batches_stored=row[1],
-        processed_seq=row[2],
-        samples_processed=row[3],
-        calibrator_state=row[4],
-        calibrator_status=row[5],
-        last_refit=json.loads(row[6]) if row[6] else None,
-        feed_state=json.loads(row[7]) if row[7] else {},
-        current_version=row[8],
-        updated_at=row[9],
-        rejected_batches=row[10] or 0,
-        rejected_samples=row[11] or 0,
-        last_rejection=json.loads(row[12]) if row[12] else None,
-    )
-
-
-def _version(row: tuple) -> VersionRecord:
-    return VersionRecord(
-        version=row[0],
-        status=row[1],
-        source=row[2],
-        created_at=row[3],
-        calibration=json.loads(row[4]),
-        provenance=json.loads(row[5]),
-    )
-
-
-def _dumps(obj: Any) -> str:
-    return json.dumps(obj, separators=(",", ":"), allow_nan=False)
+_DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in DEVICE_COLUMNS)
 
 
 class SQLiteStore(GroupCommitStore):
@@ -301,7 +266,7 @@ class SQLiteStore(GroupCommitStore):
         row = self._reader().execute(
             f"SELECT {_DEVICE_COLS} FROM devices WHERE device_id = ?", (device_id,)
         ).fetchone()
-        return _device(row) if row else None
+        return device_from_row(row) if row else None
 
     def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:
         rows = self._reader().execute(
@@ -319,7 +284,7 @@ class SQLiteStore(GroupCommitStore):
         conn.execute(
             "INSERT INTO versions(device_id, version, status, source, created_at, calibration, provenance) "
             "VALUES (?, ?, ?, ?, ?, ?, ?)",
-            (device_id, number, v.status, v.source, now, _dumps(v.calibration), _dumps(v.provenance)),
+            (device_id, number, v.status, v.source, now, dumps_json(v.calibration), dumps_json(v.provenance)),
         )
         return number
 
@@ -338,8 +303,8 @@ class SQLiteStore(GroupCommitStore):
                     p.samples_added,
                     p.calibrator_state,
                     p.calibrator_status,
-                    None if p.last_refit is None else _dumps(p.last_refit),
-                    _dumps(p.feed_state),
+                    None if p.last_refit is None else dumps_json(p.last_refit),
+                    dumps_json(p.feed_state),
                     numbers[-1] if numbers else None,
                     now,
                     p.device_id,
@@ -361,7 +326,7 @@ class SQLiteStore(GroupCommitStore):
                     "UPDATE devices SET rejected_batches = rejected_batches + ?, "
                     "rejected_samples = rejected_samples + ?, last_rejection = ? WHERE device_id = ?",
                     (len(p.rejected), sum(r[1] for r in p.rejected),
-                     _dumps({"seq": q, "reason": reason, "at": now}), p.device_id))
+                     dumps_json({"seq": q, "reason": reason, "at": now}), p.device_id))
             return numbers
 
         return self._submit(op)
@@ -378,25 +343,25 @@ class SQLiteStore(GroupCommitStore):
         ).fetchone()
         if row is None:
             return None
-        dev = _device(row[:_N_DEVICE_COLS])
-        ver = _version(row[_N_DEVICE_COLS:]) if row[_N_DEVICE_COLS] is not None else None
+        dev = device_from_row(row[:_N_DEVICE_COLS])
+        ver = version_from_row(row[_N_DEVICE_COLS:]) if row[_N_DEVICE_COLS] is not None else None
         return dev, ver
 
     def history(self, device_id: str) -> list[VersionRecord]:
         rows = self._reader().execute(
-            "SELECT version, status, source, created_at, calibration, provenance FROM versions "
+            f"SELECT {VERSION_COLUMNS} FROM versions "
             "WHERE device_id = ? ORDER BY version",
             (device_id,),
         ).fetchall()
-        return [_version(r) for r in rows]
+        return [version_from_row(r) for r in rows]
 
     def get_version(self, device_id: str, version: int) -> VersionRecord | None:
         row = self._reader().execute(
-            "SELECT version, status, source, created_at, calibration, provenance FROM versions "
+            f"SELECT {VERSION_COLUMNS} FROM versions "
             "WHERE device_id = ? AND version = ?",
             (device_id, version),
         ).fetchone()
-        return _version(row) if row else None
+        return version_from_row(row) if row else None
 
     def list_devices(self, after: str | None, limit: int) -> list[tuple[DeviceRecord, str]]:
         rows = self._reader().execute(
@@ -405,7 +370,7 @@ class SQLiteStore(GroupCommitStore):
             "WHERE d.device_id > ? ORDER BY d.device_id LIMIT ?",
             (after or "", limit),
         ).fetchall()
-        return [(_device(r[:_N_DEVICE_COLS]), r[_N_DEVICE_COLS]) for r in rows]
+        return [(device_from_row(r[:_N_DEVICE_COLS]), r[_N_DEVICE_COLS]) for r in rows]
 
     def backlog(self) -> int:
         return int(self._reader().execute("SELECT COUNT(*) FROM batches WHERE state = 0").fetchone()[0])

@@ -30,6 +30,7 @@ Invariants every implementation keeps:
 from __future__ import annotations
 
 import abc
+import json
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -121,6 +122,49 @@ class VersionRecord:
     created_at: float
     calibration: dict[str, Any]
     provenance: dict[str, Any]
+
+
+#: The device columns in the order :func:`device_from_row` reads them; a store may select
+#: ``state_rev`` after them (PostgreSQL) or not (SQLite).
+DEVICE_COLUMNS = (
+    "device_id", "batches_stored", "processed_seq", "samples_processed", "calibrator_state",
+    "calibrator_status", "last_refit", "feed_state", "current_version", "updated_at",
+    "rejected_batches", "rejected_samples", "last_rejection",
+)
+#: The version columns in the order :func:`version_from_row` reads them.
+VERSION_COLUMNS = "version, status, source, created_at, calibration, provenance"
+
+
+def device_from_row(row: tuple) -> DeviceRecord:
+    """A :class:`DeviceRecord` from a row in ``DEVICE_COLUMNS`` order (JSON columns as text),
+    optionally followed by ``state_rev``."""
+    return DeviceRecord(
+        device_id=row[0],
+        batches_stored=row[1],
+        processed_seq=row[2],
+        samples_processed=row[3],
+        calibrator_state=row[4],
+        calibrator_status=row[5],
+        last_refit=json.loads(row[6]) if row[6] else None,
+        feed_state=json.loads(row[7]) if row[7] else {},
+        current_version=row[8],
+        updated_at=row[9],
+        rejected_batches=row[10] or 0,
+        rejected_samples=row[11] or 0,
+        last_rejection=json.loads(row[12]) if row[12] else None,
+        state_rev=row[13] if len(row) > len(DEVICE_COLUMNS) else None,
+    )
+
+
+def version_from_row(row: tuple) -> VersionRecord:
+    """A :class:`VersionRecord` from a row in ``VERSION_COLUMNS`` order."""
+    return VersionRecord(version=row[0], status=row[1], source=row[2], created_at=row[3],
+                         calibration=json.loads(row[4]), provenance=json.loads(row[5]))
+
+
+def dumps_json(obj: Any) -> str:
+    """Compact JSON for a stored column (NaN refused)."""
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False)
 
 
 class Storage(abc.ABC):

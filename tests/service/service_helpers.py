@@ -90,6 +90,16 @@ class ServerProcess:
         self.proc: subprocess.Popen | None = None
         self.log = self.tmp / "server.log"
 
+    def child_env(self) -> dict[str, str]:
+        """The environment of this server's processes (and of its ``selfcal worker`` processes)."""
+        env = dict(os.environ)
+        env["SELFCAL_API_KEYS"] = KEY_SPEC
+        env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(REPO), env.get("PYTHONPATH", "")])
+        if self.calibrator:
+            env["SELFCAL_CALIBRATOR"] = self.calibrator
+        env.update(self.env)
+        return env
+
     @property
     def db_arg(self) -> str:
         """What ``--db`` gets: the SQLite path, or (PostgreSQL run) that path's own database."""
@@ -101,12 +111,7 @@ class ServerProcess:
 
     def start(self, timeout_s: float = 30.0) -> None:
         self.port = free_port()
-        env = dict(os.environ)
-        env["SELFCAL_API_KEYS"] = KEY_SPEC
-        env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(REPO), env.get("PYTHONPATH", "")])
-        if self.calibrator:
-            env["SELFCAL_CALIBRATOR"] = self.calibrator
-        env.update(self.env)
+        env = self.child_env()
         cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", self.db_arg, "--port", str(self.port),
                "--config", str(self.config), "--log-level", "warning", *self.args]
         self._logfh = open(self.log, "ab")
@@ -183,11 +188,7 @@ class WorkerProcess:
         self.proc: subprocess.Popen | None = None
 
     def start(self) -> None:
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(REPO), env.get("PYTHONPATH", "")])
-        if self.server.calibrator:
-            env["SELFCAL_CALIBRATOR"] = self.server.calibrator
-        env.update(self.server.env)
+        env = self.server.child_env()
         cmd = [sys.executable, "-m", "selfcal.cli", "worker", "--db", self.server.db_arg,
                "--config", str(self.server.config), "--log-level", "warning", "--status-every-s", "2"]
         self._logfh = open(self.log, "ab")
