@@ -53,6 +53,7 @@ from selfcal.errors import InputError
 from selfcal.fit import sphere_directions
 from selfcal.models import ErrorModel
 from selfcal.sim import SimConfig, Simulation, canonical_qr, sensor_mean
+from selfcal.soak import find_soaks
 
 SECONDS_PER_DAY = 86400.0
 BASE_NAMES = ErrorModel("affine9").param_names
@@ -117,6 +118,7 @@ def replay(
     random_init: bool = True,
     checkpoint: str | Path | None = None,
     progress: bool = False,
+    soaks: bool = True,
 ) -> dict[str, Any]:
     """Replay one simulated device; returns ``{"initial": {...}, "refits": [...], ...}``.
 
@@ -132,6 +134,14 @@ def replay(
     random_init : bool — start from a random value in [0, 1] per parameter (the paper's test)
     checkpoint : path — JSON checkpoint written after every refit; resumed if it exists
     progress : bool — progress bar on stderr
+    soaks : bool — False drops every still window that belongs to a thermal soak
+        (:func:`selfcal.soak.find_soaks`: one orientation while the temperature changes by
+        ≥ 1 °C), to measure what soaks bring; only at the ``poses`` level
+
+    Besides the base metrics, every row carries the model's effect terms (``effect_terms``:
+    estimate, sd and whether determined, in the recording's unit per °C or per day), and
+    the result has, per term, the truth, the first day it was determined and its final
+    error (``effect_summary``).
     """
     if level not in ("poses", "samples"):
         raise ValueError(f"level: expected 'poses' or 'samples', got {level!r}")
@@ -147,6 +157,17 @@ def replay(
     keep = np.all(poses.sd_g <= sd_max, axis=1)
     from selfcal.sim.simulator import PoseTable
 
+    soak_info = {"dropped": not soaks, "n_soaks": 0, "n_windows": 0}
+    if not soaks:
+        if level != "poses":
+            raise ValueError("soaks=False works at the poses level (the detector's windows are not filtered)")
+        keep_idx = np.flatnonzero(keep)
+        keep_idx = keep_idx[np.argsort(poses.t_s[keep_idx], kind="stable")]
+        runs = find_soaks(poses.t_s[keep_idx] + poses.duration_s[keep_idx] / 2, poses.mean_g[keep_idx],
+                          poses.temp_c[keep_idx])
+        for run in runs:
+            keep[keep_idx[run]] = False
+        soak_info.update(n_soaks=len(runs), n_windows=int(sum(r.stop - r.start for r in runs)))
     poses = PoseTable(**{k: getattr(poses, k)[keep] for k in PoseTable.__dataclass_fields__})
     metrics = TruthMetrics(sim, poses)
     init_rng = np.random.default_rng([seed, 1])
@@ -214,7 +235,8 @@ def replay(
             theta = np.asarray(cur["theta_u"]) if cur else start_theta
             row = dict(day=float(ev["t_s"] / SECONDS_PER_DAY), **metrics(cal.model, theta, ev["t_s"]),
                        n_poses=len(cal.buffer), fit_ms=ev.get("fit_ms"), status=cal.status,
-                       published=ev["published"], reason=ev["reason"], mode=ev.get("mode"))
+                       published=ev["published"], reason=ev["reason"], mode=ev.get("mode"),
+                       effect_terms=_effect_terms(cal))
             refits.append(row)
         done_until = b
         if ckpt:
@@ -241,8 +263,35 @@ def replay(
         "n_still_windows": int(len(poses)),
         "wall_s": time.perf_counter() - t0_wall,
         "truth": {"params": truth.params(), "effects": truth.model_params()},
+        "soaks": soak_info,
+        "effect_summary": effect_summary(refits, truth.model_params()),
         "final": None if final is None else {k: final[k] for k in ("params", "std", "status", "version", "undetermined")},
     }
+
+
+def _effect_terms(cal: OnlineCalibrator) -> dict[str, dict]:
+    """The published model's effect terms: ``{name: {"est", "sd", "determined"}}`` (recording unit)."""
+    c = cal.calibration()
+    names = cal.model.param_names[len(ErrorModel(cal.model.base).param_names):]
+    if c is None:
+        return {}
+    det = set(c.get("determined", []))
+    return {n: {"est": float(c["params"][n]), "sd": float(c["std"][n]), "determined": n in det} for n in names}
+
+
+def effect_summary(rows: list[dict], truth_effects: dict[str, float]) -> dict[str, dict]:
+    """Per effect term of the replayed model: the truth, the first day it was determined
+    (None: never), and the final estimate's error, absolute and in its reported sd."""
+    out: dict[str, dict] = {}
+    names = list(rows[-1].get("effect_terms", {})) if rows else []
+    for n in names:
+        first = next((r["day"] for r in rows if r.get("effect_terms", {}).get(n, {}).get("determined")), None)
+        last = rows[-1]["effect_terms"][n]
+        true = float(truth_effects.get(n, 0.0))
+        err = last["est"] - true
+        out[n] = {"true": true, "first_determined_day": first, "final": last["est"], "final_sd": last["sd"],
+                  "final_error": err, "final_error_sd": abs(err) / last["sd"] if last["sd"] > 0 else float("nan")}
+    return out
 
 
 def _replay_one(kwargs: dict) -> dict:

@@ -23,7 +23,8 @@ from selfcal.sim import EFFECT_NAMES
 
 #: The simulation's options and their defaults (None in the parser: a given one is seen).
 SIM_DEFAULTS = {"days": 30.0, "refit_every_days": 3.0, "seed": 0, "devices": 1, "workers": None, "effects": "",
-                "level": "poses", "no_random_init": False, "checkpoint": None, "engine": None, "scheduler": None}
+                "level": "poses", "no_random_init": False, "checkpoint": None, "engine": None, "scheduler": None,
+                "soaks": "with"}
 
 
 def add_arguments(parser) -> None:
@@ -53,6 +54,10 @@ def add_arguments(parser) -> None:
                      help="feed still windows (fast, the default) or the full 20 Hz stream through the detector")
     sim.add_argument("--no-random-init", action="store_true", help="start from the nominal model, not random [0, 1]")
     sim.add_argument("--checkpoint", metavar="FILE", help="checkpoint after every refit; resume from it")
+    sim.add_argument("--soaks", choices=("with", "without", "both"), default=None,
+                     help="thermal soaks (still windows in one orientation while the temperature changes): keep "
+                          "them (default), drop them, or run both and compare what the model's temperature terms "
+                          "gain (poses level)")
     parser.add_argument("--model", default="affine9", help="the calibrator's model")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
@@ -79,10 +84,17 @@ def run(args) -> int:
         raise InputError(f"--effects: unknown {bad}; choose from {list(EFFECT_NAMES)}")
     if args.days <= 0 or args.refit_every_days < 0 or args.devices < 1:
         raise InputError("--days must be > 0, --refit-every-days >= 0, --devices >= 1")
+    if args.soaks != "with" and args.level != "poses":
+        raise InputError("--soaks without|both works at --level poses (the detector's windows are not filtered)")
     cfg = load_config(args.config)
     kw = dict(days=args.days, refit_every_days=args.refit_every_days, config=cfg, effects=effects,
               model=args.model, level=args.level, random_init=not args.no_random_init)
     progress = not args.no_progress and (sys.stderr.isatty() or args.devices > 1)
+    if args.soaks == "both":
+        if args.checkpoint:
+            raise InputError("--checkpoint works with one run, not --soaks both")
+        return run_soak_comparison(args, kw, progress)
+    kw["soaks"] = args.soaks == "with"
     t0 = time.perf_counter()
     if args.devices == 1:
         out = replay(seed=args.seed, checkpoint=args.checkpoint, progress=progress, **kw)
@@ -121,6 +133,81 @@ def run(args) -> int:
         outcome = "initial" if row.get("published") is None else ("published" if row["published"] else row["reason"])
         print(f"{row['day']:5.1f} {row['param_rel_error']:14.4f} {row['sphere_norm_rms_mg']:14.3f} "
               f"{row['tilt_error_deg']:9.3f} {row['n_poses']:6d} {fit}  {outcome}")
+    for name, e in out["effect_summary"].items():
+        day = f"determined on day {e['first_determined_day']:.2f}" if e["first_determined_day"] is not None \
+            else "never determined"
+        print(f"{name}: {day}; final {_term(name, e['final'])} +- {_term(name, e['final_sd'])}, true "
+              f"{_term(name, e['true'])}, error {_term(name, e['final_error'])} ({e['final_error_sd']:.2f} sd)")
+    return 0
+
+
+def _term(name: str, value: float) -> str:
+    """An effect term in display units: offsets per degC or per day in mg, scales per degC in ppm."""
+    if name.startswith("ts"):
+        return f"{value * 1e6:.1f} ppm/degC"
+    if name.startswith("db"):
+        return f"{value * 1e3:.4f} mg/day"
+    if name.startswith("q"):
+        return f"{value * 1e3:.4f} 1e-3/g"
+    return f"{value * 1e3:.4f} mg/degC"
+
+
+def run_soak_comparison(args, kw: dict, progress: bool) -> int:
+    """``--soaks both``: every device replayed with and without its soaks; per effect term, the
+    day it is determined and its final error, side by side."""
+    from selfcal.replay import replay_fleet
+
+    t0 = time.perf_counter()
+    runs = {}
+    for label, keep in (("with", True), ("without", False)):
+        runs[label] = replay_fleet(args.devices, args.seed, workers=args.workers, progress=progress,
+                                   engine=args.engine or "processes", scheduler=args.scheduler, soaks=keep, **kw)
+    terms = list(runs["with"][0]["effect_summary"])
+    table = []
+    for i in range(args.devices):
+        for n in terms:
+            w, wo = runs["with"][i]["effect_summary"][n], runs["without"][i]["effect_summary"][n]
+            table.append({"seed": args.seed + i, "term": n, "true": w["true"],
+                          "soaks_dropped": runs["without"][i]["soaks"]["n_soaks"],
+                          "soak_windows_dropped": runs["without"][i]["soaks"]["n_windows"],
+                          "with": w, "without": wo})
+    summary = {}
+    for n in terms:
+        summary[n] = {}
+        for label in ("with", "without"):
+            rows = [r[label] for r in table if r["term"] == n]
+            days = [r["first_determined_day"] for r in rows if r["first_determined_day"] is not None]
+            summary[n][label] = {
+                "determined": len(days), "devices": len(rows),
+                "median_first_determined_day": float(np.median(days)) if days else None,
+                "median_abs_final_error": float(np.median([abs(r["final_error"]) for r in rows])),
+                "within_2sd": int(sum(r["final_error_sd"] <= 2 for r in rows)),
+            }
+    out = {"devices": args.devices, "days": args.days, "model": args.model, "wall_s": time.perf_counter() - t0,
+           "summary": summary, "table": table}
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    if not terms:
+        print(f"model {args.model} has no effect terms: nothing for soaks to determine")
+        return 0
+    print(f"{args.devices} devices x {args.days:g} days, model {args.model}, effects {list(kw['effects']) or 'none'}: "
+          f"with and without thermal soaks ({out['wall_s']:.0f} s)")
+    print(f"{'seed':>4} {'term':<5} {'soaks':>5} {'true':>18} | {'with: day':>9} {'final error':>20} {'sd':>5} |"
+          f" {'without: day':>12} {'final error':>20} {'sd':>5}")
+    for r in table:
+        w, wo = r["with"], r["without"]
+        fd = lambda e: f"{e['first_determined_day']:.2f}" if e["first_determined_day"] is not None else "never"  # noqa: E731
+        print(f"{r['seed']:>4} {r['term']:<5} {r['soaks_dropped']:>5} {_term(r['term'], r['true']):>18} | "
+              f"{fd(w):>9} {_term(r['term'], w['final_error']):>20} {w['final_error_sd']:5.2f} | "
+              f"{fd(wo):>12} {_term(r['term'], wo['final_error']):>20} {wo['final_error_sd']:5.2f}")
+    for n, s in summary.items():
+        for label in ("with", "without"):
+            x = s[label]
+            day = f"{x['median_first_determined_day']:.2f}" if x["median_first_determined_day"] is not None else "-"
+            print(f"{n} {label + ' soaks':<13}: determined on {x['determined']}/{x['devices']} devices, median day "
+                  f"{day}; median |final error| {_term(n, x['median_abs_final_error'])}; within 2 sd "
+                  f"{x['within_2sd']}/{x['devices']}")
     return 0
 
 
