@@ -312,6 +312,12 @@ def soak_report(t_s: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray, temp_c:
     ----------
     t_s : (k,) s; mean_g : (k, 3) g, base-calibrated window means; var_g2 : (k, 3) or (k,) g²;
     temp_c : (k,) °C or None
+
+    Each soak is fitted twice: with the temperature terms (its answer), and with an offset
+    drift in time beside them (``with_time_drift``, whose notes say whether the soak's
+    shape separates the two). The answer says in how many soaks they are confounded:
+    a temperature term that the soak determined is no longer determined once the drift
+    is allowed, or the two correlate beyond 0.95.
     """
     if temp_c is None or not np.any(np.isfinite(np.asarray(temp_c, float))):
         return {"found": 0, "soaks": [], "combined": None, "answer": "no temperature: soaks cannot be looked for"}
@@ -323,10 +329,22 @@ def soak_report(t_s: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray, temp_c:
     cfg = config or SoakConfig()
     runs = find_soaks(t, m, temp, cfg)
     fits, rows = [], []
+    confounded = 0
+    drift_fits = []
     for r in runs:
         f = fit_soak(temp[r], m[r], v[r], model=model, frame=frame)
         fits.append(f)
-        rows.append(dict(f.to_dict(), t_start_s=float(t[r.start]), t_end_s=float(t[r.stop - 1])))
+        row = dict(f.to_dict(), t_start_s=float(t[r.start]), t_end_s=float(t[r.stop - 1]))
+        # the same soak with an offset drift in time beside the temperature terms: does the
+        # soak's shape tell temperature from time (exponential cooling), or not (a ramp)?
+        if r.stop - r.start >= 4:
+            fdf = fit_soak(temp[r], m[r], v[r], model=model, frame=frame, t_s=t[r])
+            drift_fits.append(fdf)
+            fd = fdf.to_dict()
+            row["with_time_drift"] = {k: fd[k] for k in ("coef", "std", "determined", "units", "notes")}
+            lost = bool(f.determined.any()) and not any(n.startswith("t") for n in fd["determined"])
+            confounded += lost or any("confounded" in n for n in fd["notes"])
+        rows.append(row)
     comb = combine(fits)
     spans = [f.dtemp_c for f in fits]
     if not runs:
@@ -346,4 +364,18 @@ def soak_report(t_s: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray, temp_c:
         else:
             answer = f"none: {terms} (not significant at 1 %, {len(runs)} soak(s) combined)"
         comb["chi2"], comb["effect"] = chi2, answer.split(":")[0]
-    return {"found": len(runs), "frame": frame, "soaks": rows, "combined": comb, "answer": answer}
+    comb_drift = combine(drift_fits) if len(drift_fits) == len(fits) else None
+    if comb is not None and comb["determined"] and comb_drift is not None:
+        det_t = [n for n in comb_drift["determined"] if n.startswith("t")]
+        if det_t:
+            answer += "; allowing an offset drift in time (shared): " + ", ".join(
+                f"{n} {comb_drift['coef'][n]:+.3f} ± {comb_drift['std'][n]:.3f}" for n in det_t)
+        else:
+            answer += "; allowing an offset drift in time (shared), no temperature term stays determined"
+    if confounded:
+        answer += (f"; in {confounded} of {len(runs)} soak(s) an offset drift in time would fit as well (the "
+                   "temperature changes about linearly in time, or too little beside the drift prior: see "
+                   "with_time_drift)")
+    return {"found": len(runs), "frame": frame, "soaks": rows, "combined": comb, "answer": answer,
+            "combined_with_time_drift": comb_drift,
+            "time_drift_confounded": confounded}

@@ -143,3 +143,29 @@ def test_time_drift_is_separated_from_temperature_when_the_cooling_is_exponentia
             assert any("separated" in x for x in d["notes"]), d["notes"]
         else:
             assert any("confounded" in x for x in d["notes"]), d["notes"]
+
+
+def test_soak_report_says_when_a_time_drift_would_fit_as_well():
+    """Every soak is also fitted with an offset drift in time; a ramp-shaped soak is named
+    as confounded, an exponential cooling keeps its temperature terms."""
+    from selfcal.soak import soak_report
+
+    rng = np.random.default_rng(11)
+    n = 1800  # 2-s windows, 1 h each soak (a drift prior of 2 mg/day leaves a shorter ramp to temperature)
+    t1 = np.arange(n) * 2.0
+    g = np.array([0.0, 0.0, 1.0])
+    tb = np.array([0.0, 0.0, 1.5e-3])
+    for shape, confounded in (("exponential", 0), ("ramp", 1)):
+        temp = 25.0 + (10.0 * np.exp(-t1 / 500.0) if shape == "exponential" else -10.0 * t1 / t1[-1])
+        mean = g + np.outer(temp - temp.mean(), tb) + rng.normal(0, 0.2e-3, (n, 3))
+        report = soak_report(t1, mean, np.full(n, (0.2e-3) ** 2), temp)
+        assert report["found"] == 1
+        assert report["time_drift_confounded"] == confounded, report["soaks"][0]["with_time_drift"]
+        assert "with_time_drift" in report["soaks"][0]
+        drift = report["combined_with_time_drift"]
+        assert {"tbx", "tby", "tbz", "dbx", "dby", "dbz"} <= set(drift["coef"])
+        if confounded:
+            assert "would fit as well" in report["answer"]
+        else:
+            assert "tbz" in drift["determined"]
+            assert abs(drift["coef"]["tbz"] - 1.5) <= 3 * drift["std"]["tbz"]
