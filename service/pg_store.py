@@ -32,24 +32,45 @@ from typing import Any
 from selfcal_service.group_commit import GroupCommitStore
 from selfcal_service.storage import (
     DEVICE_COLUMNS,
+    REFUSAL_COLUMNS,
+    REFUSALS_KEPT_PER_DEVICE,
     VERSION_COLUMNS,
     ConflictError,
     DeviceRecord,
+    FleetRecord,
     IngestResult,
     PendingBatch,
     Progress,
     SeqConflict,
     SeqJump,
     VersionRecord,
+    RefusalRecord,
     device_from_row,
     dumps_json,
+    fleet_from_row,
+    fleet_select,
+    refusal_from_row,
     version_from_row,
 )
 
 log = logging.getLogger("selfcal.service.postgres")
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 _SCHEMA_LOCK = 815_372_001  # pg_advisory_lock key while the schema is created or migrated
+
+_REFUSALS_SCHEMA = [
+    """CREATE TABLE IF NOT EXISTS refusals (
+        id        BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY,
+        device_id TEXT NOT NULL,
+        recorded_at DOUBLE PRECISION NOT NULL,
+        kind      TEXT NOT NULL,
+        reason    TEXT,
+        message   TEXT,
+        t_s       DOUBLE PRECISION,
+        seq       BIGINT
+    )""",
+    "CREATE INDEX IF NOT EXISTS refusals_device ON refusals (device_id, id)",
+]
 
 _SCHEMA = [
     "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
@@ -94,17 +115,23 @@ _SCHEMA = [
         provenance  TEXT NOT NULL,
         PRIMARY KEY (device_id, version)
     )""",
+    *_REFUSALS_SCHEMA,
 ]
 
 #: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
-MIGRATIONS: dict[int, list[str]] = {}
+MIGRATIONS: dict[int, list[str]] = {
+    1: list(_REFUSALS_SCHEMA),  # v2: the refusal log of the dashboard (starts empty)
+}
 
 _COLS = [*DEVICE_COLUMNS, "state_rev"]
 _DEVICE_COLS = ", ".join(f"d.{c}" for c in _COLS)
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in _COLS)  # no state
 _N = len(_COLS)
 
-_NOW = "extract(epoch from clock_timestamp())"  # the database's clock, seconds since the epoch
+_NOW = "extract(epoch from clock_timestamp())"
+# the dashboard's page of devices: the served calibration's figures read with jsonb operators
+_FLEET_SQL = fleet_select(lambda key: f"((v.calibration::jsonb) ->> '{key}')::double precision",
+                          lambda key: f"((v.calibration::jsonb) ->> '{key}')")  # the database's clock, seconds since the epoch
 
 
 def is_postgres_url(db: str) -> bool:
@@ -349,6 +376,16 @@ class PostgresStore(GroupCommitStore):
                     "rejected_samples = rejected_samples + %s, last_rejection = %s WHERE device_id = %s",
                     (len(p.rejected), sum(r[1] for r in p.rejected),
                      dumps_json({"seq": q, "reason": reason, "at": now}), p.device_id))
+            if p.refusals:
+                with conn.cursor() as cur:
+                    cur.executemany(
+                        f"INSERT INTO refusals(device_id, {REFUSAL_COLUMNS}) VALUES (%s, %s, %s, %s, %s, %s, %s)",
+                        [(p.device_id, r.at if r.at is not None else now, r.kind, r.reason, r.message, r.t_s, r.seq)
+                         for r in p.refusals])
+                conn.execute(  # keep the device's newest REFUSALS_KEPT_PER_DEVICE
+                    "DELETE FROM refusals WHERE device_id = %s AND id < (SELECT id FROM refusals "
+                    "WHERE device_id = %s ORDER BY id DESC LIMIT 1 OFFSET %s)",
+                    (p.device_id, p.device_id, REFUSALS_KEPT_PER_DEVICE - 1))
             return numbers
 
         op.device_id = p.device_id  # type: ignore[attr-defined]
@@ -421,6 +458,20 @@ class PostgresStore(GroupCommitStore):
             "LEFT JOIN versions v ON v.device_id = d.device_id AND v.version = d.current_version "
             "WHERE d.device_id > %s ORDER BY d.device_id LIMIT %s", (after or "", limit))
         return [(device_from_row(r[:_N]), r[_N]) for r in rows]
+
+    def fleet(self, after: str | None, limit: int, device_id: str | None = None) -> list[FleetRecord]:
+        if device_id is not None:
+            rows = self._read(_FLEET_SQL + " WHERE d.device_id = %s", (device_id,))
+        else:
+            rows = self._read(_FLEET_SQL + " WHERE d.device_id > %s ORDER BY d.device_id LIMIT %s",
+                              (after or "", limit))
+        return [fleet_from_row(r) for r in rows]
+
+    def refusals(self, device_id: str, limit: int) -> list[RefusalRecord]:
+        rows = self._read(
+            f"SELECT {REFUSAL_COLUMNS} FROM (SELECT id, {REFUSAL_COLUMNS} FROM refusals WHERE device_id = %s "
+            "ORDER BY id DESC LIMIT %s) AS newest ORDER BY id", (device_id, limit))
+        return [refusal_from_row(r) for r in rows]
 
     def backlog(self) -> int:
         return int(self._read("SELECT COUNT(*) FROM batches WHERE state = 0")[0][0])

@@ -26,9 +26,12 @@ from pathlib import Path
 from selfcal_service.group_commit import GroupCommitStore
 from selfcal_service.storage import (
     DEVICE_COLUMNS,
+    REFUSAL_COLUMNS,
+    REFUSALS_KEPT_PER_DEVICE,
     VERSION_COLUMNS,
     ConflictError,
     DeviceRecord,
+    FleetRecord,
     IngestResult,
     NewVersion,
     PendingBatch,
@@ -36,14 +39,18 @@ from selfcal_service.storage import (
     SeqConflict,
     SeqJump,
     VersionRecord,
+    RefusalRecord,
     device_from_row,
     dumps_json,
+    fleet_from_row,
+    fleet_select,
+    refusal_from_row,
     version_from_row,
 )
 
 log = logging.getLogger("selfcal.service.sqlite")
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
@@ -88,6 +95,17 @@ CREATE TABLE IF NOT EXISTS versions (
     provenance  TEXT NOT NULL,
     PRIMARY KEY (device_id, version)
 );
+CREATE TABLE IF NOT EXISTS refusals (
+    id        INTEGER PRIMARY KEY,
+    device_id TEXT NOT NULL,
+    recorded_at REAL NOT NULL,
+    kind      TEXT NOT NULL,
+    reason    TEXT,
+    message   TEXT,
+    t_s       REAL,
+    seq       INTEGER
+);
+CREATE INDEX IF NOT EXISTS refusals_device ON refusals (device_id, id);
 """
 
 #: Batch states: pending, fed to the calibrator once, rejected with a reason.
@@ -111,6 +129,13 @@ MIGRATIONS = {
         "ALTER TABLE devices ADD COLUMN rejected_samples INTEGER NOT NULL DEFAULT 0",
         "ALTER TABLE devices ADD COLUMN last_rejection TEXT",
     ],
+    # v3: the refusal log (refits that published nothing, rejected batches) for the dashboard;
+    # a v2 database starts with an empty log
+    2: [
+        "CREATE TABLE IF NOT EXISTS refusals (id INTEGER PRIMARY KEY, device_id TEXT NOT NULL, recorded_at REAL NOT NULL, "
+        "kind TEXT NOT NULL, reason TEXT, message TEXT, t_s REAL, seq INTEGER)",
+        "CREATE INDEX IF NOT EXISTS refusals_device ON refusals (device_id, id)",
+    ],
 }
 
 _DEVICE_COLS = ", ".join(DEVICE_COLUMNS)
@@ -118,6 +143,9 @@ _N_DEVICE_COLS = len(DEVICE_COLUMNS)
 # what the read routes select: every device column but the calibrator state, which can be
 # a megabyte for a device worn for weeks (thousands of pose cells) and no read needs
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in DEVICE_COLUMNS)
+# the dashboard's page of devices: JSON1's json_extract reads the served calibration's figures
+_FLEET_SQL = fleet_select(lambda key: f"json_extract(v.calibration, '$.{key}')",
+                          lambda key: f"json_extract(v.calibration, '$.{key}')")
 
 
 class SQLiteStore(GroupCommitStore):
@@ -327,6 +355,14 @@ class SQLiteStore(GroupCommitStore):
                     "rejected_samples = rejected_samples + ?, last_rejection = ? WHERE device_id = ?",
                     (len(p.rejected), sum(r[1] for r in p.rejected),
                      dumps_json({"seq": q, "reason": reason, "at": now}), p.device_id))
+            if p.refusals:
+                conn.executemany(
+                    f"INSERT INTO refusals(device_id, {REFUSAL_COLUMNS}) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    [(p.device_id, r.at if r.at is not None else now, r.kind, r.reason, r.message, r.t_s, r.seq)
+                     for r in p.refusals])
+                conn.execute(  # keep the device's newest REFUSALS_KEPT_PER_DEVICE
+                    "DELETE FROM refusals WHERE device_id = ? AND id < (SELECT id FROM refusals WHERE device_id = ? "
+                    "ORDER BY id DESC LIMIT 1 OFFSET ?)", (p.device_id, p.device_id, REFUSALS_KEPT_PER_DEVICE - 1))
             return numbers
 
         return self._submit(op)
@@ -371,6 +407,20 @@ class SQLiteStore(GroupCommitStore):
             (after or "", limit),
         ).fetchall()
         return [(device_from_row(r[:_N_DEVICE_COLS]), r[_N_DEVICE_COLS]) for r in rows]
+
+    def fleet(self, after: str | None, limit: int, device_id: str | None = None) -> list[FleetRecord]:
+        if device_id is not None:
+            rows = self._reader().execute(_FLEET_SQL + " WHERE d.device_id = ?", (device_id,)).fetchall()
+        else:
+            rows = self._reader().execute(
+                _FLEET_SQL + " WHERE d.device_id > ? ORDER BY d.device_id LIMIT ?", (after or "", limit)).fetchall()
+        return [fleet_from_row(r) for r in rows]
+
+    def refusals(self, device_id: str, limit: int) -> list[RefusalRecord]:
+        rows = self._reader().execute(
+            f"SELECT {REFUSAL_COLUMNS} FROM (SELECT id, {REFUSAL_COLUMNS} FROM refusals WHERE device_id = ? "
+            "ORDER BY id DESC LIMIT ?) ORDER BY id", (device_id, limit)).fetchall()
+        return [refusal_from_row(r) for r in rows]
 
     def backlog(self) -> int:
         return int(self._reader().execute("SELECT COUNT(*) FROM batches WHERE state = 0").fetchone()[0])

@@ -19,7 +19,9 @@ Invariants every implementation keeps:
   *rejected* with a reason (for example ``late``); never both, never neither for long.
   ``processed_seq`` is the highest fed seq.
 * ``commit_progress`` writes the calibrator state, the fed and rejected batches, the
-  feed bookkeeping and any newly published versions in **one** transaction, and only
+  feed bookkeeping, any newly published versions and the cycle's refusals (refits that
+  published nothing, rejected batches; the last ``REFUSALS_KEPT_PER_DEVICE`` per device are
+  kept) in **one** transaction, and only
   if the stored ``processed_seq`` still equals the one the worker started from (and,
   on a shared database, the state revision and the worker's lease); otherwise it
   raises :class:`ConflictError` and writes nothing.
@@ -93,6 +95,30 @@ class NewVersion:
     provenance: dict[str, Any]
 
 
+#: Refusals kept per device (the oldest are deleted beyond this); a refit runs at most every
+#: few minutes of worn data, so this is days to weeks of a device's history.
+REFUSALS_KEPT_PER_DEVICE = 1000
+
+
+@dataclass
+class RefusalRecord:
+    """A refit that published nothing, or a stored batch that was never fed, with its reason.
+
+    ``kind``: ``"refit"`` (``reason`` is the calibrator's: ``no_significant_change``,
+    ``worse_than_current``, ``insufficient_coverage``, ...) or ``"batch"`` (``late``,
+    ``calibrator``). ``at``: Unix time (s) the service recorded it (None when written:
+    the commit's time, the clock of the versions' ``created_at``). ``t_s``: the device's
+    (calibrator's) time of a refit, s. ``seq``: the rejected batch's seq.
+    """
+
+    kind: str
+    reason: str | None
+    message: str = ""
+    at: float | None = None
+    t_s: float | None = None
+    seq: int | None = None
+
+
 @dataclass
 class Progress:
     """What one worker cycle writes for one device (one transaction)."""
@@ -108,6 +134,7 @@ class Progress:
     new_versions: list[NewVersion] = field(default_factory=list)
     fed_seqs: list[int] = field(default_factory=list)
     rejected: list[tuple[int, int, str]] = field(default_factory=list)  # (seq, n_samples, reason)
+    refusals: list[RefusalRecord] = field(default_factory=list)  # appended to the device's refusal log
     # optimistic checks of a shared database (PostgreSQL): the state this cycle started
     # from, and the lease the writing worker must still hold (None: not checked)
     expected_state_rev: int | None = None
@@ -122,6 +149,81 @@ class VersionRecord:
     created_at: float
     calibration: dict[str, Any]
     provenance: dict[str, Any]
+
+
+@dataclass
+class FleetRecord:
+    """One device as the fleet dashboard lists it (the served version's figures, the backlog).
+
+    ``last_seen``: Unix time (s) the device's highest-seq batch was received;
+    ``updated_at``: Unix time (s) of the last refit cycle or admin write.
+    ``predicted_sphere_rms_mg``, ``residual_rms_mg``, ``n_poses`` and ``model`` come from the
+    served version's calibration (None before the first). ``backlog_batches``: stored
+    batches of this device neither fed nor rejected yet.
+    """
+
+    device_id: str
+    status: str
+    version: int | None
+    source: str | None
+    model: str | None
+    predicted_sphere_rms_mg: float | None
+    residual_rms_mg: float | None
+    n_poses: int | None
+    backlog_batches: int
+    batches_stored: int
+    samples_processed: int
+    rejected_batches: int
+    last_seen: float | None
+    updated_at: float | None
+    last_refusal: RefusalRecord | None
+
+
+def fleet_from_row(row: tuple) -> FleetRecord:
+    """A :class:`FleetRecord` from a row of the stores' fleet query (see ``FLEET_COLUMNS``)."""
+    (device_id, status, version, source, model, predicted, residual, n_poses, backlog, stored, samples,
+     rejected, last_seen, updated_at, r_at, r_kind, r_reason, r_message, r_t_s, r_seq) = row
+    refusal = None if r_kind is None else RefusalRecord(
+        kind=r_kind, reason=r_reason, message=r_message or "", at=r_at, t_s=r_t_s, seq=r_seq)
+    return FleetRecord(
+        device_id=device_id, status=status, version=version, source=source, model=model,
+        predicted_sphere_rms_mg=None if predicted is None else float(predicted),
+        residual_rms_mg=None if residual is None else float(residual),
+        n_poses=None if n_poses is None else int(n_poses),
+        backlog_batches=int(backlog or 0), batches_stored=int(stored or 0), samples_processed=int(samples or 0),
+        rejected_batches=int(rejected or 0), last_seen=last_seen, updated_at=updated_at, last_refusal=refusal)
+
+
+def refusal_from_row(row: tuple) -> RefusalRecord:
+    """A :class:`RefusalRecord` from a row in ``REFUSAL_COLUMNS`` order."""
+    return RefusalRecord(kind=row[1], reason=row[2], message=row[3] or "", at=row[0], t_s=row[4], seq=row[5])
+
+
+def fleet_select(json_number, json_text) -> str:
+    """The fleet query of both stores, up to its WHERE clause (rows for :func:`fleet_from_row`).
+
+    ``json_number(key)`` / ``json_text(key)``: this database's SQL for one key of the
+    served version's calibration (a JSON text column) as a number / a text. The backlog
+    counts the device's pending batches (the partial index ``batches_pending``); last seen
+    is the receipt time of its highest seq (the primary key); the last refusal is its
+    newest row in ``refusals`` (index ``refusals_device``).
+    """
+    return (
+        "SELECT d.device_id, COALESCE(v.status, 'uncalibrated'), d.current_version, v.source, "
+        f"{json_text('model')}, {json_number('predicted_sphere_rms_mg')}, {json_number('residual_rms_mg')}, "
+        f"{json_number('n_poses')}, "
+        "(SELECT COUNT(*) FROM batches b WHERE b.device_id = d.device_id AND b.state = 0), "
+        "d.batches_stored, d.samples_processed, d.rejected_batches, "
+        "(SELECT b.received_at FROM batches b WHERE b.device_id = d.device_id ORDER BY b.seq DESC LIMIT 1), "
+        "d.updated_at, r.recorded_at, r.kind, r.reason, r.message, r.t_s, r.seq "
+        "FROM devices d "
+        "LEFT JOIN versions v ON v.device_id = d.device_id AND v.version = d.current_version "
+        "LEFT JOIN refusals r ON r.id = (SELECT MAX(r2.id) FROM refusals r2 WHERE r2.device_id = d.device_id)"
+    )
+
+
+#: The refusal columns in the order :func:`refusal_from_row` reads them.
+REFUSAL_COLUMNS = "recorded_at, kind, reason, message, t_s, seq"
 
 
 #: The device columns in the order :func:`device_from_row` reads them; a store may select
@@ -223,6 +325,16 @@ class Storage(abc.ABC):
     def list_devices(self, after: str | None, limit: int) -> list[tuple[DeviceRecord, str]]:
         """Devices ordered by id (after ``after``), each with its served status
         (``calibrator_state`` is None, as in :meth:`current`)."""
+
+    @abc.abstractmethod
+    def fleet(self, after: str | None, limit: int, device_id: str | None = None) -> list[FleetRecord]:
+        """Devices ordered by id (after ``after``) with the served version's figures, the
+        backlog and the last refusal: one query for a page of the dashboard. With
+        ``device_id``: that device's row only (or none)."""
+
+    @abc.abstractmethod
+    def refusals(self, device_id: str, limit: int) -> list[RefusalRecord]:
+        """The device's last ``limit`` refusals, oldest first."""
 
     @abc.abstractmethod
     def ping(self) -> bool: ...

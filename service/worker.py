@@ -36,6 +36,7 @@ from selfcal_service.storage import (
     NewVersion,
     PendingBatch,
     Progress,
+    RefusalRecord,
     Storage,
     StorageUnavailable,
 )
@@ -101,6 +102,26 @@ def jsonable(obj: Any) -> Any:
     if obj is None or isinstance(obj, str):
         return obj
     return str(obj)
+
+
+#: Longest refusal message stored (the calibrator's messages are a line; a traceback is not).
+REFUSAL_MESSAGE_CHARS = 300
+
+
+def refusals_of(events: list[dict[str, Any]], rejected: list[tuple[int, int, str]]) -> list[RefusalRecord]:
+    """The refusal log entries of one cycle: its refits that published nothing (the
+    calibrator's reason and message, device time ``t_s``) and its rejected batches
+    (reason ``late`` or ``calibrator``, the first word of the stored reason)."""
+    def seconds(value: Any) -> float | None:
+        value = jsonable(value)
+        return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+    out = [RefusalRecord(kind="refit", reason=None if ev.get("reason") is None else str(ev["reason"]),
+                         message=str(ev.get("message") or "")[:REFUSAL_MESSAGE_CHARS], t_s=seconds(ev.get("t_s")))
+           for ev in events if not ev.get("published")]
+    out += [RefusalRecord(kind="batch", reason=reason.split(":", 1)[0], message=reason[:REFUSAL_MESSAGE_CHARS],
+                          seq=int(seq)) for seq, _, reason in rejected]
+    return out
 
 
 @dataclass(frozen=True)
@@ -372,6 +393,7 @@ class RefitWorker:
                 new_versions=versions,
                 fed_seqs=fed,
                 rejected=rejected,
+                refusals=refusals_of(events, rejected),
                 expected_state_rev=rec.state_rev,
                 lease_owner=self.lease.owner if self.lease is not None else None,
             )

@@ -148,9 +148,9 @@ INSERT INTO meta VALUES ('schema_version', '1');
 
 @only_sqlite
 def test_v1_database_migrates_and_keeps_the_resend_rules(tmp_path):
-    """A schema-1 database (batches 0 and 1 stored, 0 fed) opens as schema 2: batch 0 is
-    fed, 1 pending; a resend of 1 with its own bytes is a duplicate, with other bytes a
-    conflict (the migration hashed the stored payloads)."""
+    """A schema-1 database (batches 0 and 1 stored, 0 fed) opens as schema 3 (2: batch
+    states; 3: the refusal log): batch 0 is fed, 1 pending; a resend of 1 with its own
+    bytes is a duplicate, with other bytes a conflict (the migration hashed the stored payloads)."""
     import hashlib
     import sqlite3
 
@@ -180,8 +180,10 @@ def test_v1_database_migrates_and_keeps_the_resend_rules(tmp_path):
                                hashlib.sha256(other.to_bytes()).digest(), 100).result()
     finally:
         store.close()
-    version = sqlite3.connect(db).execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0]
-    assert version == "2"
+    conn = sqlite3.connect(db)
+    version = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0]
+    assert version == "3"  # v2 added the batch states, v3 the refusal log (empty)
+    assert conn.execute("SELECT COUNT(*) FROM refusals").fetchone()[0] == 0
 
 
 # ----------------------------------------------------------------- ordering contract
