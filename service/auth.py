@@ -67,6 +67,11 @@ class KeyRing:
 
     def check(self, authorization: str | None, scope: str) -> None:
         """Raise :class:`AuthError` unless ``authorization`` holds a key with ``scope``."""
+        if scope not in self.scopes_of(authorization):
+            raise AuthError(403, f"API key lacks the '{scope}' scope")
+
+    def scopes_of(self, authorization: str | None) -> frozenset[str]:
+        """The scopes of the key in ``authorization``; :class:`AuthError` (401) if none or unknown."""
         if not authorization:
             raise AuthError(401, "missing Authorization header (expected 'Bearer KEY')")
         kind, _, token = authorization.partition(" ")
@@ -79,5 +84,4 @@ class KeyRing:
                 found = entry.scopes
         if found is None:
             raise AuthError(401, "unknown API key")
-        if scope not in found:
-            raise AuthError(403, f"API key lacks the '{scope}' scope")
+        return found

@@ -41,12 +41,18 @@ from selfcal_service.schemas import (
     ErrorOut,
     FactoryCalibrationIn,
     FieldError,
+    FleetDeviceOut,
+    FleetOut,
     HealthOut,
     HistoryOut,
+    PosesOut,
     ReadyOut,
+    RefusalOut,
+    RefusalsOut,
     RollbackIn,
     SampleBatchIn,
     VersionOut,
+    WhoAmIOut,
     batch_request_openapi,
     canonical_binary,
     check_batch,
@@ -58,7 +64,9 @@ from selfcal_service.sqlite_store import SQLiteStore
 from selfcal_service.storage import (
     ConflictError,
     DeviceRecord,
+    FleetRecord,
     NewVersion,
+    RefusalRecord,
     SeqConflict,
     SeqJump,
     Storage,
@@ -142,6 +150,23 @@ def _versions_out(v: VersionRecord) -> VersionOut:
         calibration=v.calibration,
         provenance=v.provenance,
     )
+
+
+def refusal_out(r: RefusalRecord) -> RefusalOut:
+    """A stored refusal as the API shows it (ISO time beside the Unix seconds)."""
+    return RefusalOut(kind=r.kind, reason=r.reason, message=r.message, at=_iso(r.at), at_unix_s=r.at,
+                      t_s=r.t_s, seq=r.seq)
+
+
+def fleet_device_out(f: FleetRecord) -> FleetDeviceOut:
+    """A fleet row as the API shows it (ISO times, the last refusal typed)."""
+    status = f.status if f.status in ("uncalibrated", "provisional", "calibrated") else "uncalibrated"
+    return FleetDeviceOut(
+        device_id=f.device_id, status=status, version=f.version, source=f.source, model=f.model,
+        predicted_sphere_rms_mg=f.predicted_sphere_rms_mg, residual_rms_mg=f.residual_rms_mg, n_poses=f.n_poses,
+        backlog_batches=f.backlog_batches, batches_stored=f.batches_stored, samples_processed=f.samples_processed,
+        rejected_batches=f.rejected_batches, last_seen=_iso(f.last_seen), updated_at=_iso(f.updated_at),
+        last_refusal=None if f.last_refusal is None else refusal_out(f.last_refusal))
 
 
 def _split_determined(calib: dict[str, Any]) -> tuple[list[str], list[str]]:
@@ -682,6 +707,71 @@ def create_app(
         ]
         nxt = devices[-1].device_id if len(devices) == limit else None
         return _model(DevicesOut(devices=devices, next_after=nxt))
+
+    @app.get(
+        "/fleet",
+        response_model=FleetOut,
+        responses=_ERRORS,
+        dependencies=[need("read")],
+        summary="devices in id order with the served version's figures, backlog and last refusal (paged)",
+        tags=["dashboard"],
+    )
+    async def get_fleet(
+        store: StoreDep,
+        after: Annotated[str | None, Query(max_length=64, description="last device_id of the previous page")] = None,
+        limit: Annotated[int, Query(ge=1, le=1000)] = 1000,
+        device_id: Annotated[str | None, Query(pattern=DEVICE_ID_PATTERN, description="only this device")] = None,
+    ) -> Response:
+        rows = await _read(store, store.fleet, after, limit, device_id)
+        devices = [fleet_device_out(f) for f in rows]
+        nxt = devices[-1].device_id if len(devices) == limit and device_id is None else None
+        return _model(FleetOut(devices=devices, next_after=nxt))
+
+    @app.get(
+        "/devices/{device_id}/refusals",
+        response_model=RefusalsOut,
+        responses=_ERRORS,
+        dependencies=[need("read")],
+        summary="the device's refits that published nothing and batches never fed, with reasons (oldest first)",
+        tags=["dashboard"],
+    )
+    async def get_refusals(
+        device_id: DeviceId, store: StoreDep,
+        limit: Annotated[int, Query(ge=1, le=1000, description="the newest this many")] = 500,
+    ) -> Response:
+        await _current_or_404(store, device_id)
+        rows = await _read(store, store.refusals, device_id, limit)
+        return _model(RefusalsOut(device_id=device_id, refusals=[refusal_out(r) for r in rows]))
+
+    @app.get(
+        "/devices/{device_id}/poses",
+        response_model=PosesOut,
+        responses=_ERRORS,
+        dependencies=[need("read")],
+        summary="the stored still poses (direction, degC, residual in mg) and the undetermined directions",
+        tags=["dashboard"],
+    )
+    async def get_poses(device_id: DeviceId, store: StoreDep) -> Response:
+        from selfcal_service.coverage import pose_coverage
+
+        _, ver = await _current_or_404(store, device_id)
+        # the one read that carries the calibrator state (up to megabytes): off the event loop on any store
+        rec = await run_in_threadpool(store.load_device, device_id)
+        state = rec.calibrator_state if rec is not None else None
+        found = await run_in_threadpool(pose_coverage, state, ver.calibration if ver else None,
+                                        ver.version if ver else None)
+        return _model(PosesOut(device_id=device_id, **found))
+
+    @app.get(
+        "/whoami",
+        response_model=WhoAmIOut,
+        responses={401: _ERRORS[401]},
+        summary="the scopes of the presented key (any valid key)",
+        tags=["dashboard"],
+    )
+    async def whoami(request: Request) -> Response:
+        scopes = keys.scopes_of(request.headers.get("authorization"))
+        return _model(WhoAmIOut(scopes=sorted(scopes)))
 
     @app.get(
         "/healthz",

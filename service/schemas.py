@@ -350,6 +350,89 @@ class DevicesOut(BaseModel):
     next_after: str | None = Field(None, description="pass as ?after= for the next page")
 
 
+class WhoAmIOut(BaseModel):
+    """The scopes of the presented key (the dashboard hides what the key may not do)."""
+
+    scopes: list[Literal["ingest", "read", "admin"]]
+
+
+class RefusalOut(BaseModel):
+    """A refit that published nothing, or a stored batch never fed, with its reason."""
+
+    kind: Literal["refit", "batch"] = Field(description="refit: the calibrator kept the served model; batch: not fed")
+    reason: str | None = Field(None, description="typed reason: no_significant_change, worse_than_current, "
+                               "insufficient_coverage, implausible, late, calibrator, ...")
+    message: str = ""
+    at: str | None = Field(None, description="ISO 8601 UTC time the service recorded it (the clock of created_at)")
+    at_unix_s: float | None = Field(None, description="the same time, Unix seconds")
+    t_s: float | None = Field(None, description="device (calibrator) time of a refit, s")
+    seq: int | None = Field(None, description="the rejected batch's seq")
+
+
+class RefusalsOut(BaseModel):
+    device_id: str
+    refusals: list[RefusalOut] = Field(description="oldest first; the service keeps the last 1000 per device")
+
+
+class FleetDeviceOut(BaseModel):
+    """One device as the fleet dashboard lists it."""
+
+    device_id: str
+    status: Status
+    version: int | None
+    source: Literal["refit", "factory", "rollback"] | None = None
+    model: str | None = None
+    predicted_sphere_rms_mg: float | None = Field(
+        None, description="served version: calibrated-norm RMS error over the sphere its covariance predicts, mg")
+    residual_rms_mg: float | None = Field(None, description="served version: fit residual RMS, mg")
+    n_poses: int | None = Field(None, description="served version: pose cells it was fitted to")
+    backlog_batches: int = Field(description="stored batches of this device neither fed nor rejected yet")
+    batches_stored: int
+    samples_processed: int
+    rejected_batches: int
+    last_seen: str | None = Field(None, description="ISO 8601 UTC receipt time of the device's highest-seq batch")
+    updated_at: str | None = Field(None, description="ISO 8601 UTC time of its last refit cycle or admin write")
+    last_refusal: RefusalOut | None = Field(
+        None, description="its newest refusal (GET /devices/{id}/refusals has them all; the last refit's "
+        "full outcome is in GET /devices/{id}/calibration)")
+
+
+class FleetOut(BaseModel):
+    devices: list[FleetDeviceOut]
+    next_after: str | None = Field(None, description="pass as ?after= for the next page")
+
+
+class SphereGridOut(BaseModel):
+    """Directions spread over the whole sphere and the calibrated-norm error predicted along each."""
+
+    direction: list[list[float]] = Field(description="unit gravity directions, sensor frame")
+    sd_mg: list[float | None] = Field(description="sd of the calibrated norm the current fit predicts there, mg")
+    prior_sd_mg: list[float | None] = Field(description="the datasheet prior's sd there, mg")
+    undetermined: list[bool] = Field(description="sd_mg above undetermined_above_sd_mg")
+
+
+class PosesOut(BaseModel):
+    """The device's stored still poses (pose cells) and the directions they leave undetermined."""
+
+    device_id: str
+    available: bool = Field(description="false: this calibrator keeps no pose store, or nothing was fed yet")
+    note: str | None = None
+    version: int | None = Field(None, description="served version the residuals are computed with")
+    model: str | None = None
+    residual_basis: Literal["served", "nominal"] | None = Field(
+        None, description="served: residuals under the served version; nominal: no calibration yet")
+    n_poses: int
+    direction: list[list[float | None]] = Field(description="per pose: unit gravity direction, sensor frame")
+    temp_c: list[float | None] = Field(description="per pose: mean temperature, degC (null: none measured)")
+    residual_mg: list[float | None] = Field(description="per pose: |a_cal| - 1 g under the served version, mg")
+    windows: list[int] = Field(description="per pose: still windows merged in the cell")
+    t_s: list[float | None] = Field(description="per pose: mean window time, device s")
+    residual_rms_mg: float | None = None
+    undetermined_above_sd_mg: float | None = Field(
+        None, description="a direction is undetermined above this predicted sd, mg ([scheduler] calibrated_max_sphere_mg)")
+    sphere: SphereGridOut
+
+
 class HealthOut(BaseModel):
     """Liveness: the process answers and its threads run (restart it if not)."""
 
