@@ -825,6 +825,9 @@ def create_app(
         text = await _read(request.app.state.store, metrics.render)
         return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
 
+    from selfcal_service.dashboard import add_dashboard_routes
+
+    add_dashboard_routes(app)
     return app
 
 
