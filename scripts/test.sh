@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up a virtual environment with everything the tests need, then run the whole suite.
-# Works on a fresh machine with only Python 3.11 (pip reaches PyPI). The service suite
-# then runs a second time against PostgreSQL (a throw-away cluster the tests start;
+# Works on a fresh machine with only Python 3.11 (pip reaches PyPI; as root, apt-get adds
+# Chromium and PostgreSQL when missing). The service suite then runs a second time
+# against PostgreSQL (a throw-away cluster the tests start;
 # scripts/postgres.sh installs the server binaries when they are missing and it can).
 # Without PostgreSQL that second run is skipped with the reason printed, except in CI
 # (CI=true) on a machine that could have installed it, where that is a failure.
@@ -10,6 +11,16 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[dev]'
+# Chromium for the dashboard's browser tests (Playwright drives the system's; scripts/chromium.sh
+# installs Debian's when missing and it can). Without it those tests skip with the reason,
+# except in CI on a machine that could have installed it, where that is a failure.
+if ! bash scripts/chromium.sh; then
+  if [ "${CI:-}" = "true" ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "FAILED: Chromium should have been installable here (root, apt-get), so the dashboard tests must run" >&2
+    exit 1
+  fi
+  echo "SKIPPING: the dashboard's browser tests (no Chromium; see above)" >&2
+fi
 if [ $# -gt 0 ]; then exec .venv/bin/python -m pytest -q "$@"; fi
 .venv/bin/python -m pytest -q
 if bash scripts/postgres.sh; then

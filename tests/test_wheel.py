@@ -3,8 +3,8 @@
 ``python -m build --wheel``, then a new virtual environment with nothing but the wheel
 and its declared extras (``service``, ``ble``). From outside the repository it runs
 ``selfcal --version``, ``selfcal calibrate`` on a copied recording, ``selfcal serve``
-(``/healthz`` answers), and a short ``selfcal demo``. The wheel installs no generic
-top-level name: ``import service`` fails.
+(``/healthz`` answers, the dashboard's files are served), and a short ``selfcal demo``.
+The wheel installs no generic top-level name: ``import service`` fails.
 """
 
 import json
@@ -80,6 +80,12 @@ def test_installed_wheel_runs_calibrate_serve_and_demo(venv):
             except OSError:
                 time.sleep(0.2)
         assert body is not None, "selfcal serve never answered /healthz"
+        # the dashboard's pages and its vendored plotting library come from the wheel
+        for path, needle in (("/ui", b"fleet.js"), ("/ui/static/device.js", b"uPlot"),
+                             ("/ui/static/vendor/uplot/uPlot.iife.min.js", b"uPlot"),
+                             ("/ui/static/vendor/uplot/LICENSE", b"MIT")):
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5) as r:
+                assert r.status == 200 and needle in r.read(), path
     finally:
         srv.terminate()
         srv.wait(timeout=30)
