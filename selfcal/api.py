@@ -158,15 +158,17 @@ def read(path: str | os.PathLike):
 
 
 def calibrate(recording, model: str = "affine9", config: dict | str | os.PathLike | None = None,
-              progress: bool = False) -> Calibration:
+              progress: bool = False, fixed_model: bool = False) -> Calibration:
     """Calibrate a recording (a ``Recording`` or a path) with the online calibrator.
 
     Parameters
     ----------
     recording : Recording or path — samples or poses, in g, m/s² or raw counts
-    model : str — error model name
+    model : str — error model to start from; online model selection may add an effect the
+        poses support (or drop one it added): ``Calibration.model`` says which it ended on
     config : dict (loaded) or path of a TOML file overriding the defaults, or None
     progress : bool — progress bar on stderr
+    fixed_model : bool — keep ``model`` as it is (no online model selection)
 
     Returns
     -------
@@ -181,7 +183,9 @@ def calibrate(recording, model: str = "affine9", config: dict | str | os.PathLik
     from selfcal.pipeline import calibrate_path, calibrate_recording
 
     ErrorModel(model)
-    cfg = config if isinstance(config, dict) else load_config(config)
+    cfg = dict(config) if isinstance(config, dict) else load_config(config)
+    if fixed_model:
+        cfg["selection"] = dict(cfg.get("selection") or {}, enabled=False)
     if isinstance(recording, (str, os.PathLike)):  # a file is streamed in blocks (bounded memory)
         run = calibrate_path(recording, model, cfg, progress=progress)
         source = os.fspath(recording)

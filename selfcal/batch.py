@@ -33,7 +33,8 @@ def _device_name(meta: dict) -> str | None:
     return meta.get("device") or meta.get("sensor") or meta.get("format")
 
 
-def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, columns: list[str] | None = None) -> dict:
+def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, columns: list[str] | None = None,
+                  fixed_model: bool = False) -> dict:
     """Calibrate one file; never raises: an error becomes the row's ``error``."""
     from selfcal.config import load_config
     from selfcal.errors import SelfcalError
@@ -44,7 +45,10 @@ def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, 
     row: dict = {k: None for k in SUMMARY_COLUMNS}
     row.update(file=path, model=model)
     try:
-        run = calibrate_path(path, model, load_config(config_path), columns=columns)  # streamed: bounded memory
+        cfg = load_config(config_path)
+        if fixed_model:
+            cfg.setdefault("selection", {})["enabled"] = False
+        run = calibrate_path(path, model, cfg, columns=columns)  # streamed: bounded memory
         row["device"] = _device_name(run.meta)
         store = run.calibrator.store
         summ = store.summary()
@@ -91,7 +95,8 @@ def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, 
 
 
 def run_batch(files: list[str], model: str, config_path: str | None, out_dir: str, jobs: int,
-              summary: str | None, progress: bool = True, columns: list[str] | None = None) -> list[dict]:
+              summary: str | None, progress: bool = True, columns: list[str] | None = None,
+              fixed_model: bool = False) -> list[dict]:
     """Calibrate ``files`` with ``jobs`` processes; write the summary; return the rows in input order."""
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     rows: dict[int, dict] = {}
@@ -102,12 +107,13 @@ def run_batch(files: list[str], model: str, config_path: str | None, out_dir: st
         bar = tqdm(total=len(files), unit="file", desc="calibrate", file=sys.stderr)
     if jobs <= 1:
         for i, f in enumerate(files):
-            rows[i] = calibrate_one(f, model, config_path, out_dir, columns)
+            rows[i] = calibrate_one(f, model, config_path, out_dir, columns, fixed_model)
             if bar:
                 bar.update(1)
     else:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futs = {pool.submit(calibrate_one, f, model, config_path, out_dir, columns): i for i, f in enumerate(files)}
+            futs = {pool.submit(calibrate_one, f, model, config_path, out_dir, columns, fixed_model): i
+                    for i, f in enumerate(files)}
             for fut in as_completed(futs):
                 rows[futs[fut]] = fut.result()
                 if bar:

@@ -58,6 +58,17 @@ from selfcal.fit import (
 )
 from selfcal.models import ErrorModel, Normalizer
 from selfcal.poses import PoseConfig, PoseStore
+from selfcal.selection import (
+    Comparison,
+    SelectionConfig,
+    compare,
+    extend_prior,
+    stops_paying,
+    supports,
+    wald_not_significant_to_keep,
+    wald_significant,
+)
+from selfcal.selection import applicable as selection_applicable
 
 SECONDS_PER_DAY = 86400.0
 STATE_FORMAT_VERSION = 2
@@ -138,6 +149,7 @@ class OnlineCalibrator:
         self.guard_cfg = GuardConfig.from_section(section(self.config, "guard"))
         self.sched_cfg = SchedulerConfig.from_section(section(self.config, "scheduler"))
         self.pose_cfg = PoseConfig.from_section(section(self.config, "poses"))
+        self.sel_cfg = SelectionConfig.from_section(section(self.config, "selection"))
         detect = _detector_module()
         self.det_cfg = detect.DetectorConfig.from_section(section(self.config, "detector"))
         self.detector = detect.StaticDetector(self.det_cfg)
@@ -152,6 +164,8 @@ class OnlineCalibrator:
         self.last_refit_t_s: float | None = None
         self.t_last_s: float | None = None
         self.n_samples = 0
+        # online model selection: when it last looked, which effects it added, its recent checks
+        self.selection: dict = {"last_check_t_s": None, "added": [], "checks": []}
 
     # ------------------------------------------------------------------ status
     @property
@@ -324,22 +338,17 @@ class OnlineCalibrator:
         if n_cells < self.guard_cfg.min_poses:
             reason = "insufficient_coverage" if len(self.store) else "no_still_poses"
             return self._refuse(t_now, reason, f"{n_cells} pose cell(s); at least {self.guard_cfg.min_poses} are needed")
+        if self._selection_due(t_now, n_cells):
+            switched = self._select(t_now)
+            if switched is not None:
+                return switched
+            usable = self._usable()
+            n_cells = int(usable.sum())
         data = self.store.pose_data(usable, t_now, self._age_var())
         prior = self.prior()
         theta0 = self.initial_params_u if self.current is None else np.asarray(self.current["theta_u"])
-        floor = self.sched_cfg.cell_floor_g
-        cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor})
-        clusters = self.store.clusters()[usable]
         try:
-            fit = fit_poses(self.model, data, prior=prior, theta0_u=theta0, cfg=cfg, robust=True, clusters=clusters)
-            # the noise the data show: shared floor and cell noise scaled (never below the model)
-            c_floor, c_noise = variance_components(self.model, fit, data, floor, reject_z=self.fit_cfg.reject_z)
-            if c_floor > 1.0 or c_noise > 1.0:
-                cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor * np.sqrt(c_floor)})
-                data = PoseData(data.mean, None if data.sd is None else data.sd * np.sqrt(c_noise),
-                                data.count, data.t_s, data.temp_c)
-                fit = fit_poses(self.model, data, prior=prior, theta0_u=fit.theta_u, cfg=cfg, robust=True,
-                                clusters=clusters)
+            fit, data, cfg, c_noise = self._fit_store(data, usable, prior, theta0)
         except InputError as exc:
             return self._refuse(t_now, "insufficient_coverage", str(exc))
         fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}
@@ -352,6 +361,135 @@ class OnlineCalibrator:
         if hold:
             return self._refuse(t_now, "no_significant_change", hold, fit, decision)
         return self._publish(t_now, fit, cal, decision)
+
+    def _fit_store(self, data: PoseData, usable: np.ndarray, prior: Prior, theta0) -> tuple:
+        """The robust MAP fit of the cells, with the noise the data show; returns
+        ``(fit, data, fit_cfg, cell_noise_factor)`` (data with the noise rescaled)."""
+        floor = self.sched_cfg.cell_floor_g
+        cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor})
+        clusters = self.store.clusters()[usable]
+        fit = fit_poses(self.model, data, prior=prior, theta0_u=theta0, cfg=cfg, robust=True, clusters=clusters)
+        # the noise the data show: shared floor and cell noise scaled (never below the model)
+        c_floor, c_noise = variance_components(self.model, fit, data, floor, reject_z=self.fit_cfg.reject_z)
+        if c_floor > 1.0 or c_noise > 1.0:
+            cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor * np.sqrt(c_floor)})
+            data = PoseData(data.mean, None if data.sd is None else data.sd * np.sqrt(c_noise),
+                            data.count, data.t_s, data.temp_c)
+            fit = fit_poses(self.model, data, prior=prior, theta0_u=fit.theta_u, cfg=cfg, robust=True,
+                            clusters=clusters)
+        return fit, data, cfg, c_noise
+
+    # ------------------------------------------------------------------ model selection
+    def _selection_due(self, t_now: float, n_cells: int) -> bool:
+        c = self.sel_cfg
+        if not c.enabled or self.current is None or n_cells < c.min_cells:
+            return False
+        last = self.selection.get("last_check_t_s")
+        return last is None or t_now - float(last) >= c.every_hours * 3600.0
+
+    def _prior_of(self, target: ErrorModel) -> Prior:
+        """The prior of another model: this one's (datasheet or installed) for the shared terms."""
+        return extend_prior(self.prior(), self.model, target, datasheet_prior(target, self.fit_cfg))
+
+    def _select(self, t_now: float) -> dict | None:
+        """One check of the model (see :mod:`selfcal.selection`); the switch event, or None."""
+        c = self.sel_cfg
+        self.selection["last_check_t_s"] = t_now
+        theta = np.asarray(self.current["theta_u"], float)
+        floor_cfg = getattr(self, "_fit_cfg_now", None) or self.fit_cfg.model_copy(
+            update={"sigma_floor_g": self.sched_cfg.cell_floor_g})
+        temps = self.store.mean_temp()
+        folds_all = self.store.folds()
+        clusters_all = self.store.clusters()
+        clip = c.clip_mg * 1e-3
+        results: list[tuple[str, Comparison]] = []
+        cv_cache: dict[bool, dict] = {}
+
+        def cells(with_temp: bool) -> np.ndarray:
+            return np.isfinite(temps) if with_temp else np.ones(len(self.store), dtype=bool)
+
+        # drop: an effect selection added that no longer pays
+        for e in [x for x in self.selection.get("added", []) if x in self.model.effects]:
+            small = self.model.with_effects(tuple(x for x in self.model.effects if x != e))
+            mask = cells(any(x.startswith("temperature") for x in self.model.effects))
+            data = self.store.pose_data(mask, t_now, self._age_var())
+            comp = compare(small, self.model, data, folds_all[mask], prior_small=self._prior_of(small),
+                           prior_large=self.prior(), theta_small=small.extend_theta(theta, self.model),
+                           fit_cfg=floor_cfg, clip_g=clip, clusters=clusters_all[mask],
+                           cv_only_if=wald_not_significant_to_keep(c))
+            results.append(("drop", comp))
+            if stops_paying(comp, c):
+                return self._switch(small, comp, "dropped", t_now, results)
+        # add: the best supported candidate
+        best = None
+        for e in c.candidates:
+            if e in self.model.effects:
+                continue
+            large = self.model.with_effects(self.model.effects + (e,))
+            with_temp = any(x.startswith("temperature") for x in large.effects)
+            mask = cells(with_temp)
+            if mask.sum() < c.min_cells:
+                continue
+            data = self.store.pose_data(mask, t_now, self._age_var())
+            why = selection_applicable(e, data, c)
+            if why:
+                continue
+            comp = compare(self.model, large, data, folds_all[mask], prior_small=self.prior(),
+                           prior_large=self._prior_of(large), theta_small=theta, fit_cfg=floor_cfg, clip_g=clip,
+                           cv_small=cv_cache.setdefault(with_temp, {}), clusters=clusters_all[mask],
+                           cv_only_if=wald_significant(c))
+            results.append(("add", comp))
+            # the largest relative held-out gain wins (two candidates can both be supported, e.g. a
+            # temperature bias and scale on flat poses: the better predictor goes in first)
+            if supports(comp, c) and (best is None or comp.gain_rel > best.gain_rel):
+                best = comp
+        self._log_check(t_now, results, None)
+        if best is not None:
+            return self._switch(ErrorModel(best.large, self.model.temp_ref_c, self.model.t_ref_s), best, "added",
+                                t_now, results)
+        return None
+
+    def _log_check(self, t_now: float, results: list, decision: str | None) -> None:
+        self.selection["checks"] = (self.selection.get("checks", []) + [{
+            "t_s": t_now, "decision": decision,
+            "tested": [dict(comp.to_dict(), test=kind) for kind, comp in results]}])[-10:]
+
+    def _switch(self, target: ErrorModel, comp: Comparison, what: str, t_now: float, results: list) -> dict | None:
+        """Refit the store under ``target`` and publish it as a model change; None if it cannot be."""
+        old_model, old_seed = self.model, self.seeded_prior
+        if self.seeded_prior is not None:
+            p = extend_prior(self.prior(), self.model, target, datasheet_prior(target, self.fit_cfg))
+            self.seeded_prior = {"mean": p.mean.tolist(), "cov": p.cov.tolist()}
+        theta0 = target.extend_theta(np.asarray(self.current["theta_u"], float), self.model)
+        self.model = target
+        usable = self._usable()
+        data = self.store.pose_data(usable, t_now, self._age_var())
+        try:
+            fit, data, cfg, c_noise = self._fit_store(data, usable, self.prior(), theta0)
+        except InputError:
+            fit = None
+        why = None if fit is None or not fit.success else implausible(target, fit.theta_u, self.guard_cfg)
+        if fit is None or not fit.success or why:
+            self.model, self.seeded_prior = old_model, old_seed  # stay: the switch did not fit
+            self._log_check(t_now, results, f"{what} {comp.effect}: not switched ({why or 'the fit failed'})")
+            return None
+        self._log_check(t_now, results, f"{what} {comp.effect}")
+        added = [x for x in self.selection.get("added", []) if x in target.effects]
+        if what == "added":
+            added.append(comp.effect)
+        self.selection["added"] = added
+        fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}
+        self._fit_cfg_now = cfg
+        message = (f"model {old_model.name} -> {target.name}: {comp.effect} {what} (held-out z {comp.heldout_z:.1f}, "
+                   f"RMS {comp.heldout_rms_small_mg:.3f} -> {comp.heldout_rms_large_mg:.3f} mg on "
+                   f"{comp.n_heldout} cells; effect terms chi2 {comp.wald_chi2:.1f} on {comp.wald_dof})")
+        decision = GuardDecision(True, None, message, comp.heldout_rms_large_mg, comp.heldout_rms_small_mg)
+        cal = self._describe(fit, t_now, int(usable.sum()), decision)
+        cal["model_change"] = dict(comp.to_dict(), change=what, from_model=old_model.name, to_model=target.name)
+        event = self._publish(t_now, fit, cal, decision)
+        event["mode"] = self.last_refit["mode"] = "model_switch"
+        event["model_change"] = self.last_refit["model_change"] = cal["model_change"]
+        return event
 
     def _guard(self, fit: FitResult, data: PoseData, usable: np.ndarray, prior: Prior) -> GuardDecision:
         g = self.guard_cfg
@@ -532,6 +670,7 @@ class OnlineCalibrator:
             "last_refit_t_s": self.last_refit_t_s,
             "t_last_s": self.t_last_s,
             "n_samples": self.n_samples,
+            "selection": self.selection,
         }
 
     def to_json(self) -> str:
@@ -570,6 +709,7 @@ class OnlineCalibrator:
         obj.store = PoseStore.from_json(d["store"])
         obj.seeded_prior = d.get("seeded_prior")
         obj.windows_since_refit = d["windows_since_refit"]
+        obj.selection = d.get("selection") or {"last_check_t_s": None, "added": [], "checks": []}
         return obj
 
 

@@ -314,7 +314,7 @@ def calibrate_path(
 
 def published_versions(run: CalibrationRun) -> list[dict]:
     """Every version a run published, in time order, each in the recording's unit (``--history``)."""
-    return [version_in_unit(ev["calibration"], run.calibrator.model, run.normalizer, run.unit)
+    return [version_in_unit(ev["calibration"], None, run.normalizer, run.unit)
             for ev in run.events if ev.get("published") and ev.get("calibration") is not None]
 
 
@@ -326,12 +326,16 @@ def to_raw_calibration(cal: OnlineCalibrator, normalizer: Normalizer, unit: str)
     return version_in_unit(cur, cal.model, normalizer, unit)
 
 
-def version_in_unit(calibration: dict, model: ErrorModel, normalizer: Normalizer, unit: str) -> dict:
+def version_in_unit(calibration: dict, model: ErrorModel | None, normalizer: Normalizer, unit: str) -> dict:
     """A published calibration (normalised units, ~g) expressed in the recording's unit.
 
     ``params``, ``std``, ``crlb_std``, ``matrix`` and ``offset`` are converted;
     ``predicted_sphere_rms_mg`` is in mg of the calibrated output and is unchanged.
+    ``model``: None takes the version's own (``calibration["model"]``: online model
+    selection may change the model between versions).
     """
+    if model is None or calibration.get("model", model.name) != model.name:
+        model = ErrorModel(calibration["model"], calibration.get("temp_ref_c", 25.0), calibration.get("t_ref_s", 0.0))
     names = model.param_names
     theta_u = model.from_dict(calibration["params"])
     f = normalizer.param_scale(model)

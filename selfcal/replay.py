@@ -96,7 +96,7 @@ def _protocol_config(config: dict, refit_every_days: float) -> dict:
     cfg = copy.deepcopy(config or {})
     if refit_every_days > 0:  # the replay decides when to refit
         sched = cfg.setdefault("scheduler", {})
-        sched.update(refit_every_poses=10**9, refit_every_hours=1e9, min_poses_first=10**9)
+        sched.update(refit_every_poses=10**9, refit_every_windows=10**9, refit_every_hours=1e9, min_poses_first=10**9)
     return cfg
 
 
@@ -196,6 +196,8 @@ def replay(
         bar = tqdm(total=len(boundaries), desc=f"replay seed {seed}", unit="period", file=sys.stderr)
         bar.update(int(np.sum(boundaries <= done_until + 1e-9)))
     t0_wall = time.perf_counter()
+    base_name = ErrorModel(model).base
+    last_cal = cal.calibration()
     sample_iter = sim.iter_samples(chunk_s=3600) if level == "samples" else None
     pending = None
     for b in boundaries:
@@ -231,12 +233,16 @@ def replay(
         if refit_every_days > 0:
             events = [cal.refit()]
         for ev in events:
+            if ev["published"]:  # the effect terms as published at this event (rows' other metrics: period end)
+                last_cal = ev["calibration"]
             cur = cal.current
             theta = np.asarray(cur["theta_u"]) if cur else start_theta
             row = dict(day=float(ev["t_s"] / SECONDS_PER_DAY), **metrics(cal.model, theta, ev["t_s"]),
                        n_poses=len(cal.buffer), fit_ms=ev.get("fit_ms"), status=cal.status,
                        published=ev["published"], reason=ev["reason"], mode=ev.get("mode"),
-                       effect_terms=_effect_terms(cal))
+                       effect_terms=_effect_terms(last_cal, base_name), model=(last_cal or {}).get("model", model))
+            if ev.get("model_change"):
+                row["model_change"] = ev["model_change"]
             refits.append(row)
         done_until = b
         if ckpt:
@@ -264,17 +270,18 @@ def replay(
         "wall_s": time.perf_counter() - t0_wall,
         "truth": {"params": truth.params(), "effects": truth.model_params()},
         "soaks": soak_info,
+        "model_final": cal.model.name,
+        "model_switches": [dict(r["model_change"], day=r["day"]) for r in refits if r.get("model_change")],
         "effect_summary": effect_summary(refits, truth.model_params()),
         "final": None if final is None else {k: final[k] for k in ("params", "std", "status", "version", "undetermined")},
     }
 
 
-def _effect_terms(cal: OnlineCalibrator) -> dict[str, dict]:
-    """The published model's effect terms: ``{name: {"est", "sd", "determined"}}`` (recording unit)."""
-    c = cal.calibration()
-    names = cal.model.param_names[len(ErrorModel(cal.model.base).param_names):]
+def _effect_terms(c: dict | None, base: str) -> dict[str, dict]:
+    """A published calibration's effect terms: ``{name: {"est", "sd", "determined"}}`` (recording unit)."""
     if c is None:
         return {}
+    names = [n for n in c["params"] if n not in ErrorModel(base).param_names]
     det = set(c.get("determined", []))
     return {n: {"est": float(c["params"][n]), "sd": float(c["std"][n]), "determined": n in det} for n in names}
 

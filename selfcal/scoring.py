@@ -85,37 +85,49 @@ def version_row(calibration: dict) -> dict:
 
 
 class TruthScorer:
-    """Scores published versions (calibration JSON in g) of ``model_name`` against a truth dict."""
+    """Scores published versions (calibration JSON in g) against a truth dict.
+
+    ``model_name`` is the model of the CRLB and of :attr:`truth_u`; each version is scored
+    under its own ``model`` (online model selection may change it between versions)."""
 
     def __init__(self, truth: dict, model_name: str, n_dirs: int = 2000):
         from selfcal.sim.sensor import SensorTruth
 
         self.truth = truth
         self.sensor = SensorTruth.from_dict(truth)
-        self.model = ErrorModel(model_name, truth["temp_ref_c"], float(truth.get("time_origin_s", 0.0)))
-        names = set(self.model.param_names)
-        known = {**truth["params"], **truth["effect_params"]}
-        self.truth_u = self.model.from_dict({k: v for k, v in known.items() if k in names})
+        self._models: dict[str, tuple[ErrorModel, np.ndarray]] = {}
+        self.model, self.truth_u = self._of(model_name)
         self.dirs = sphere_directions(n_dirs)
 
-    def sphere_rms_mg(self, theta_u: np.ndarray, t_s: float) -> float:
+    def _of(self, model_name: str) -> tuple[ErrorModel, np.ndarray]:
+        """The model of that name (the truth's reference temperature and time) and the truth in it."""
+        if model_name not in self._models:
+            model = ErrorModel(model_name, self.truth["temp_ref_c"], float(self.truth.get("time_origin_s", 0.0)))
+            names = set(model.param_names)
+            known = {**self.truth["params"], **self.truth["effect_params"]}
+            self._models[model_name] = (model, model.from_dict({k: v for k, v in known.items() if k in names}))
+        return self._models[model_name]
+
+    def sphere_rms_mg(self, theta_u: np.ndarray, t_s: float, model: ErrorModel | None = None) -> float:
         """True calibrated-norm RMS error (mg) over the sphere, at the reference temperature and ``t_s``."""
         from selfcal.sim.sensor import sensor_mean
 
+        model = model or self.model
         temp = np.full(len(self.dirs), self.sensor.temp_ref_c)
         tt = np.full(len(self.dirs), float(t_s))
         raw = sensor_mean(self.sensor, self.dirs, temp, tt)
-        a = self.model.apply(theta_u, raw, temp, tt)
+        a = model.apply(theta_u, raw, temp, tt)
         return float(np.sqrt(np.mean((np.linalg.norm(a, axis=1) - 1) ** 2)) * 1e3)
 
     def score(self, calibration: dict) -> dict:
-        """One published version: :func:`version_row` plus ``true_mg`` and ``z`` (per parameter)."""
-        theta = self.model.from_dict(calibration["params"])
-        std = np.array([calibration["std"][n] for n in self.model.param_names])
+        """One published version: :func:`version_row` plus ``true_mg`` and ``z`` (per parameter of its model)."""
+        model, truth_u = self._of(calibration.get("model", self.model.name))
+        theta = model.from_dict(calibration["params"])
+        std = np.array([calibration["std"][n] for n in model.param_names])
         row = version_row(calibration)
         return {"version": row["version"], "t_s": row["t_s"], "status": row["status"],
-                "true_mg": self.sphere_rms_mg(theta, calibration["t_s"]), "predicted_mg": row["predicted_mg"],
-                "z": ((theta - self.truth_u) / std).tolist()}
+                "true_mg": self.sphere_rms_mg(theta, calibration["t_s"], model), "predicted_mg": row["predicted_mg"],
+                "z": ((theta - truth_u) / std).tolist()}
 
     def score_all(self, calibrations: Iterable[dict]) -> list[dict]:
         """:meth:`score` of every version, in order."""

@@ -17,7 +17,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("recording", metavar="REC", nargs="+",
                         help="recording(s): selfcal CSV (samples or poses), .cwa, .gt3x or .bin; several files: "
                              "one calibration JSON each in --out-dir, one summary row each")
-    parser.add_argument("--model", default="affine9", help="error model (scale6, affine9, affine9+effect...)")
+    parser.add_argument("--model", default="affine9",
+                        help="error model to start from (scale6, affine9, affine9+effect...); online model selection "
+                             "may add an effect the poses support, or drop one it added")
+    parser.add_argument("--fixed-model", action="store_true",
+                        help="keep --model as it is (no online model selection: [selection] enabled = false)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     parser.add_argument("--out", metavar="CAL.json", help="write the calibration JSON here")
     parser.add_argument("--history", metavar="FILE.jsonl",
@@ -78,7 +82,7 @@ def run_many(args) -> int:
 
     columns = plain_columns(args.columns, args.unit) if args.columns else None
     rows = run_batch(args.recording, args.model, args.config, out_dir, args.jobs, args.summary,
-                     progress=args.progress or sys.stderr.isatty(), columns=columns)
+                     progress=args.progress or sys.stderr.isatty(), columns=columns, fixed_model=args.fixed_model)
     failed = [r for r in rows if r["status"] in ("error", "uncalibrated")]
     for r in rows:
         print(f"{r['file']}: {r['status']}" + (f" ({r['refusal_reason'] or r['error']})" if r in failed else
@@ -99,6 +103,8 @@ def run(args) -> int:
 
     ErrorModel(args.model)  # validate the name before reading anything
     cfg = load_config(args.config)
+    if args.fixed_model:
+        cfg.setdefault("selection", {})["enabled"] = False
     for target in (args.out, args.history):  # fail before the work, not after it
         if target:
             check_writable(target)

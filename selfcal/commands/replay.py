@@ -113,6 +113,7 @@ def run(args) -> int:
                 "max": float(np.max([x["sphere_norm_rms_mg"] for x in last])),
             },
             "time_to_calibrated_h": [r["time_to_calibrated_h"] for r in results],
+            "model_selection": selection_summary(results),
             "results": results,
         }
     if args.json:
@@ -122,6 +123,11 @@ def run(args) -> int:
         print(f"{args.devices} devices x {args.days:g} days in {out['wall_s']:.1f} s: "
               f"{out['device_days_per_s']:.1f} simulated device-days/s; final sphere RMS median "
               f"{out['final_sphere_norm_rms_mg']['median']:.3f} mg, max {out['final_sphere_norm_rms_mg']['max']:.3f} mg")
+        sel = out["model_selection"]
+        day = f"median day of the first switch {sel['median_first_switch_day']:.2f}" \
+            if sel["median_first_switch_day"] is not None else "no switch"
+        print(f"model selection: {sel['switched']}/{args.devices} devices switched ({day}); final models "
+              + ", ".join(f"{m} x{n}" for m, n in sel["final_models"].items()))
         return 0
     first = (f"first 'calibrated' after {out['time_to_calibrated_h']:.1f} h" if out["time_to_calibrated_h"] is not None
              else "never 'calibrated'")
@@ -133,12 +139,27 @@ def run(args) -> int:
         outcome = "initial" if row.get("published") is None else ("published" if row["published"] else row["reason"])
         print(f"{row['day']:5.1f} {row['param_rel_error']:14.4f} {row['sphere_norm_rms_mg']:14.3f} "
               f"{row['tilt_error_deg']:9.3f} {row['n_poses']:6d} {fit}  {outcome}")
+    for sw in out["model_switches"]:
+        print(f"model switch on day {sw['day']:.2f}: {sw['from_model']} -> {sw['to_model']} ({sw['change']} "
+              f"{sw['effect']}: held-out z {sw['heldout_z']}, RMS {sw['heldout_rms_mg_before']} -> "
+              f"{sw['heldout_rms_mg_after']} mg, effect terms chi2 {sw['wald_chi2']} on {sw['wald_dof']})")
     for name, e in out["effect_summary"].items():
         day = f"determined on day {e['first_determined_day']:.2f}" if e["first_determined_day"] is not None \
             else "never determined"
         print(f"{name}: {day}; final {_term(name, e['final'])} +- {_term(name, e['final_sd'])}, true "
               f"{_term(name, e['true'])}, error {_term(name, e['final_error'])} ({e['final_error_sd']:.2f} sd)")
     return 0
+
+
+def selection_summary(results: list[dict]) -> dict:
+    """How many devices changed their model, when, and to what (``model_switches`` of each replay)."""
+    firsts = [r["model_switches"][0]["day"] for r in results if r.get("model_switches")]
+    finals: dict[str, int] = {}
+    for r in results:
+        finals[r.get("model_final", r["model"])] = finals.get(r.get("model_final", r["model"]), 0) + 1
+    return {"switched": len(firsts), "devices": len(results),
+            "median_first_switch_day": float(np.median(firsts)) if firsts else None,
+            "switches": sum(len(r.get("model_switches", [])) for r in results), "final_models": finals}
 
 
 def _term(name: str, value: float) -> str:

@@ -1,0 +1,220 @@
+"""Online model selection: the calibrator extends its own error model when held-out poses say so.
+
+On a schedule (``every_hours`` of data time), the online calibrator asks of its own pose
+store, for each candidate effect that its model lacks (``temperature_bias``,
+``temperature_scale``, ``time_drift_bias``, ``scale_nonlinearity``): would the model
+with it predict poses it was not fitted to better? A candidate is **supported** when
+both hold:
+
+* **The terms themselves.** The extended model's fit on every cell: its effect terms,
+  against their posterior covariance (Wald χ², 3 terms), beyond the ``1 − alpha``
+  quantile. The posterior covariance is the one whose honesty the consistency bench
+  checks, so this is a calibrated test; ``alpha`` is small because the question is
+  asked again every day for every candidate (30 days × 4 candidates is 120 tests, and
+  false switches must stay rare per device). This cheap test comes first: most checks
+  of an effect-free device end here.
+* **Held-out gain.** A k-fold cross-validation over the store's cells (the guard's
+  folds: a hash of the cell key). Every cell is held out once; the base and the extended
+  model are fitted without its fold and score it. The paired per-cell differences of
+  the squared (clipped) norm residuals give a z-score of the gain, which must reach
+  ``min_heldout_z``, and the held-out RMS must drop by ``min_gain_rel``.
+
+The best supported candidate (largest relative held-out gain) is switched in: the calibrator
+publishes the extended fit as a new version whose ``model_change`` says from what, to
+what, why, and the gain. An effect that selection added is tested the other way round
+at every later check, and dropped (a version again) when it no longer pays: its terms
+are no longer significant at ``drop_alpha`` and its held-out z is below ``drop_z``.
+
+Candidates need their covariate: temperature terms need cells with a temperature and a
+span of ``min_temp_span_c`` across cells, the time drift ``min_time_span_days`` of data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.special import chdtri
+
+from selfcal.errors import InputError
+from selfcal.fit import FitConfig, FitResult, PoseData, Prior, fit_poses
+from selfcal.models import EFFECT_PARAMS, ErrorModel
+
+
+class SelectionConfig(BaseModel):
+    """The ``[selection]`` section: when and how the online calibrator changes its model."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="look for missing effects on a schedule and switch the model")
+    every_hours: float = Field(24.0, gt=0, description="data time between two checks, h")
+    min_cells: int = Field(48, ge=12, description="pose cells needed before the first check")
+    candidates: list[str] = Field(default_factory=lambda: list(EFFECT_PARAMS),
+                                  description="effects that may be switched in")
+    alpha: float = Field(1e-4, gt=0, lt=0.5, description="false-alarm rate of one test of the effect terms (Wald)")
+    min_heldout_z: float = Field(3.0, gt=0, description="z-score of the paired held-out gain needed to switch")
+    min_gain_rel: float = Field(0.02, ge=0, description="relative held-out RMS gain needed to switch")
+    drop_z: float = Field(1.0, description="a switched-in effect is dropped when its held-out z falls below this")
+    drop_alpha: float = Field(0.01, gt=0, lt=1, description="...and its terms are not significant at this level")
+    min_temp_span_c: float = Field(3.0, gt=0, description="temperature span across cells for temperature terms, degC")
+    min_time_span_days: float = Field(3.0, gt=0, description="data span for the time drift, days")
+    clip_mg: float = Field(20.0, gt=0, description="held-out residuals are clipped here (one wild cell cannot decide), mg")
+
+    @classmethod
+    def from_section(cls, section_: dict | None) -> "SelectionConfig":
+        """Validate the ``[selection]`` TOML section; unknown candidates are an error."""
+        cfg = cls(**(section_ or {}))
+        bad = [c for c in cfg.candidates if c not in EFFECT_PARAMS]
+        if bad:
+            raise InputError(f"[selection] candidates: unknown {bad}; choose from {list(EFFECT_PARAMS)}")
+        return cfg
+
+
+@dataclass
+class Comparison:
+    """A smaller model against a larger one (one more effect) on the same cells."""
+
+    effect: str
+    small: str
+    large: str
+    heldout_z: float          # paired z of the held-out gain of the large model (> 0: it predicts better); NaN: not run
+    heldout_rms_small_mg: float
+    heldout_rms_large_mg: float
+    n_heldout: int
+    wald_chi2: float          # the effect terms of the large model's full fit against their covariance
+    wald_dof: int
+    large_fit: FitResult | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def gain_rel(self) -> float:
+        """Relative held-out RMS gain of the large model (NaN when not cross-validated)."""
+        if not self.heldout_rms_small_mg > 0:
+            return float("nan")
+        return 1.0 - self.heldout_rms_large_mg / self.heldout_rms_small_mg
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (mg, z, chi2; None where the cross-validation was skipped)."""
+        def num(x: float, nd: int):
+            return None if not np.isfinite(x) else round(float(x), nd)
+
+        return {"effect": self.effect, "from": self.small, "to": self.large, "heldout_z": num(self.heldout_z, 3),
+                "heldout_rms_mg_before": num(self.heldout_rms_small_mg, 4),
+                "heldout_rms_mg_after": num(self.heldout_rms_large_mg, 4),
+                "heldout_gain_rel": num(self.gain_rel, 4), "n_heldout_cells": self.n_heldout,
+                "wald_chi2": round(self.wald_chi2, 3), "wald_dof": self.wald_dof}
+
+
+def extend_prior(prior: Prior, model: ErrorModel, target: ErrorModel, datasheet: Prior) -> Prior:
+    """The prior of ``target`` (normalised units): ``prior`` (of ``model``) for the shared
+    parameters, the datasheet ``datasheet`` (of ``target``) for the others."""
+    mean = datasheet.mean.copy()
+    cov = datasheet.cov.copy()
+    idx = [target.param_names.index(n) for n in model.param_names if n in target.param_names]
+    src = [i for i, n in enumerate(model.param_names) if n in target.param_names]
+    mean[idx] = prior.mean[src]
+    cov[np.ix_(idx, idx)] = prior.cov[np.ix_(src, src)]
+    return Prior(mean, cov)
+
+
+def applicable(effect: str, data: PoseData, cfg: SelectionConfig) -> str | None:
+    """Why ``effect`` cannot be tested on these cells (its covariate is missing), or None."""
+    if effect.startswith("temperature"):
+        if data.temp_c is None or not np.all(np.isfinite(data.temp_c)):
+            return "cells without a temperature"
+        if float(np.ptp(data.temp_c)) < cfg.min_temp_span_c:
+            return f"temperature span {float(np.ptp(data.temp_c)):.1f} degC < {cfg.min_temp_span_c:g}"
+    if effect == "time_drift_bias":
+        span = float(np.ptp(data.t_s)) / 86400.0
+        if span < cfg.min_time_span_days:
+            return f"data span {span:.1f} days < {cfg.min_time_span_days:g}"
+    return None
+
+
+def _clipped(model: ErrorModel, theta: np.ndarray, data: PoseData, clip_g: float) -> np.ndarray:
+    r = model.residuals(theta, data.mean, data.temp_c, data.t_s)
+    return np.clip(r, -clip_g, clip_g)
+
+
+def compare(small: ErrorModel, large: ErrorModel, data: PoseData, folds: np.ndarray, *,
+            prior_small: Prior, prior_large: Prior, theta_small: np.ndarray, fit_cfg: FitConfig,
+            clip_g: float, cv_small: dict[int, np.ndarray] | None = None,
+            clusters: np.ndarray | None = None, cv_only_if=None) -> Comparison:
+    """Test ``large`` (``small`` plus one effect) against ``small`` on the cells ``data``.
+
+    ``folds`` (n,) int: the held-out fold of each cell. ``cv_small``: the small model's
+    held-out clipped residuals per fold (g), shared by candidates on the same cells
+    (filled in when given empty). ``cv_only_if(wald_chi2, dof) -> bool``: run the
+    cross-validation only when this says the Wald test leaves the question open.
+    Returns a :class:`Comparison` with the large model's full fit; its held-out fields
+    are NaN when the cross-validation was skipped.
+    """
+    effect = next(e for e in large.effects if e not in small.effects)
+    theta_large0 = large.extend_theta(theta_small, small)
+    # the large model on every cell first: its effect terms against their covariance
+    full = fit_poses(large, data, prior=prior_large, theta0_u=theta_large0, cfg=fit_cfg, robust=True,
+                     clusters=clusters)
+    sl = large.index(effect)
+    coef = full.theta_u[sl]
+    try:
+        wald = float(coef @ np.linalg.solve(full.cov_u[sl, sl], coef))
+    except np.linalg.LinAlgError:
+        wald = 0.0
+    out = Comparison(effect, small.name, large.name, np.nan, np.nan, np.nan, 0, wald, len(coef), full, [])
+    if cv_only_if is not None and not cv_only_if(wald, len(coef)):
+        out.notes.append("cross-validation skipped: the Wald test already decides")
+        return out
+    res_s = np.full(len(folds), np.nan)
+    res_l = np.full(len(folds), np.nan)
+    for f in np.unique(folds):
+        held = folds == f
+        train = data.subset(~held)
+        ref = data.subset(held)
+        try:
+            if cv_small is not None and f in cv_small:
+                res_s[held] = cv_small[f]
+            else:
+                fs = fit_poses(small, train, prior=prior_small, theta0_u=theta_small, cfg=fit_cfg, robust=True)
+                res_s[held] = _clipped(small, fs.theta_u, ref, clip_g)
+                if cv_small is not None:
+                    cv_small[f] = res_s[held]
+            fl = fit_poses(large, train, prior=prior_large, theta0_u=full.theta_u, cfg=fit_cfg, robust=True)
+            res_l[held] = _clipped(large, fl.theta_u, ref, clip_g)
+        except InputError as exc:
+            out.notes.append(f"fold {int(f)}: {exc}")
+    ok = np.isfinite(res_s) & np.isfinite(res_l)
+    n = int(ok.sum())
+    out.n_heldout = n
+    if n < 8:
+        out.heldout_z = 0.0
+        return out
+    d = res_s[ok] ** 2 - res_l[ok] ** 2
+    sd = float(np.std(d, ddof=1))
+    out.heldout_z = float(np.mean(d) / (sd / np.sqrt(n))) if sd > 0 else 0.0
+    out.heldout_rms_small_mg = float(np.sqrt(np.mean(res_s[ok] ** 2)) * 1e3)
+    out.heldout_rms_large_mg = float(np.sqrt(np.mean(res_l[ok] ** 2)) * 1e3)
+    return out
+
+
+def wald_significant(cfg: SelectionConfig):
+    """``(chi2, dof) -> bool``: the effect terms are significant at ``cfg.alpha``."""
+    return lambda chi2, dof: chi2 > float(chdtri(dof, cfg.alpha))
+
+
+def wald_not_significant_to_keep(cfg: SelectionConfig):
+    """``(chi2, dof) -> bool``: the effect terms are no longer significant at ``cfg.drop_alpha``."""
+    return lambda chi2, dof: chi2 <= float(chdtri(max(dof, 1), cfg.drop_alpha))
+
+
+def supports(c: Comparison, cfg: SelectionConfig) -> bool:
+    """Does the comparison support switching the effect in?"""
+    return (c.large_fit is not None and c.large_fit.success and np.isfinite(c.heldout_z)
+            and c.heldout_z >= cfg.min_heldout_z and c.gain_rel >= cfg.min_gain_rel
+            and wald_significant(cfg)(c.wald_chi2, c.wald_dof))
+
+
+def stops_paying(c: Comparison, cfg: SelectionConfig) -> bool:
+    """Does the comparison say a switched-in effect no longer pays (drop it)?"""
+    return (bool(np.isfinite(c.heldout_z)) and c.heldout_z < cfg.drop_z
+            and wald_not_significant_to_keep(cfg)(c.wald_chi2, c.wald_dof))
