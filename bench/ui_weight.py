@@ -69,7 +69,8 @@ def measure(page, url: str, done_selector: str, mark: str) -> dict:
     page.on("requestfinished", finished)
     page.goto(url)
     page.wait_for_selector(done_selector, timeout=60_000)
-    page.wait_for_function(f"performance.getEntriesByName('{mark}').length > 0")
+    # an arrow function: a bare expression would be eval'd, which the page's CSP forbids
+    page.wait_for_function(f"() => performance.getEntriesByName('{mark}').length > 0")
     timing = page.evaluate(f"""() => {{
         const nav = performance.getEntriesByType('navigation')[0];
         const fcp = performance.getEntriesByName('first-contentful-paint')[0];
@@ -83,6 +84,7 @@ def measure(page, url: str, done_selector: str, mark: str) -> dict:
 
 
 def summary(rows: list[dict], key: str) -> str:
+    """Median (min-max) of ``key`` over the runs, in ms."""
     values = [r[key] for r in rows if r[key] is not None]
     if not values:
         return "-"
@@ -90,6 +92,7 @@ def summary(rows: list[dict], key: str) -> str:
 
 
 def main() -> int:
+    """Fill the fleet, measure both pages, print the table."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--devices", type=int, default=1000)
     ap.add_argument("--runs", type=int, default=5)

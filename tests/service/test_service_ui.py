@@ -284,6 +284,11 @@ def test_device_page_history_chart_has_one_point_per_version(fleet, browser):
     assert json.loads(Path(download.value.path()).read_text()) == cal
     if backend() == "sqlite":
         page.screenshot(path=str(SCREENSHOTS / "ui_device.png"), full_page=True)
+    # a window turned to phone width: the charts are redrawn to fit, with the same points
+    page.set_viewport_size(PHONE)
+    page.wait_for_function(f"() => window.selfcalCharts.history.width <= {PHONE['width']}")
+    assert page.evaluate("window.selfcalCharts.history.data[0].length") == n_versions
+    assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
     assert page.errors == []
 
 
@@ -333,7 +338,7 @@ def test_admin_seed_from_a_jig_calibration_goes_through_the_api_validation(fleet
     after = _get(fleet, f"/devices/{device}/calibration")
     assert after["version"] == before["version"] + 1 and after["source"] == "factory"
     assert after["params"]["sx"] == pytest.approx(JIG_CALIBRATION["matrix"][0][0])
-    page.wait_for_function(f"window.selfcalCharts.history.data[0].length === {after['version']}")
+    page.wait_for_function(f"() => window.selfcalCharts.history.data[0].length === {after['version']}")
     assert page.errors == []
 
 

@@ -497,6 +497,19 @@
   }
 
   // ------------------------------------------------------------ load
+  function render(data) {
+    renderSummary(data.cal, data.row);
+    renderHistory(data.history.versions, data.refusals.refusals);
+    renderRefusals(data.history.versions, data.refusals.refusals);
+    renderParams(data.history.versions);
+    renderVersionTable(data.history.versions);
+    renderRefusalTable(data.refusals.refusals);
+    renderCoverage(data.poses);
+    renderResiduals(data.poses);
+    renderJson(data.cal);
+    renderAdmin(data.history);
+  }
+
   async function load() {
     const error = document.getElementById("load-error");
     let cal, history, refusals, poses, fleet;
@@ -513,18 +526,9 @@
       return;
     }
     error.textContent = "";
-    current = cal;
     const row = (fleet.devices || []).find((d) => d.device_id === deviceId) || null;
-    renderSummary(cal, row);
-    renderHistory(history.versions, refusals.refusals);
-    renderRefusals(history.versions, refusals.refusals);
-    renderParams(history.versions);
-    renderVersionTable(history.versions);
-    renderRefusalTable(refusals.refusals);
-    renderCoverage(poses);
-    renderResiduals(poses);
-    renderJson(cal);
-    renderAdmin(history);
+    current = { cal, history, refusals, poses, row };
+    render(current);
     const main = document.getElementById("main");
     if (!main.dataset.loaded) performance.mark("selfcal:device-rendered"); // read by bench/ui_weight.py
     main.dataset.loaded = "true";
@@ -536,7 +540,7 @@
   let resizeTimer = null;
   window.addEventListener("resize", () => {
     clearTimeout(resizeTimer);
-    resizeTimer = setTimeout(() => { if (current) load(); }, 250);
+    resizeTimer = setTimeout(() => { if (current) render(current); }, 250); // redraw at the new width, no refetch
   });
   selfcal.start((scopes) => {
     if (scopes.includes("admin")) wireAdmin();
