@@ -107,3 +107,13 @@ def test_selection_can_be_switched_off():
 def test_unknown_candidate_is_a_clear_error():
     with pytest.raises(InputError, match="candidates: unknown"):
         SelectionConfig.from_section({"candidates": ["temperature_bias", "hysteresis"]})
+
+
+def test_replay_fleet_prints_how_many_devices_switched_and_when(capsys):
+    from selfcal.cli import main
+
+    assert main(["replay", "--effects", "temperature_bias", "--days", "9", "--devices", "2", "--workers", "1",
+                 "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "model selection: 2/2 devices switched (median day of the first switch 6.00)" in out, out
+    assert "affine9+temperature_bias x2" in out
