@@ -121,3 +121,47 @@ def test_factory_seed_goes_into_the_calibrator(real_server):
         r = c.put(f"/devices/{dev}/calibration", json={"matrix": [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]],
                                                          "offset": [0, 0, 0], "model": "scale6"})
     assert r.status_code == 422 and r.json()["field"] == "model"
+
+
+@pytest.fixture(scope="module")
+def selecting_server(tmp_path_factory):
+    """A real server whose calibrator checks its model often (minutes of data, not a day)."""
+    tmp = tmp_path_factory.mktemp("select")
+    srv = ServerProcess(tmp / "selfcal.db", tmp, calibrator=None,
+                        extra_config="[selection]\nevery_hours = 0.02\nmin_cells = 24\n")
+    srv.start()
+    yield srv
+    srv.stop()
+
+
+def test_a_model_switch_is_served_as_a_version_with_its_reason(selecting_server):
+    """The sensor has a 4 mg/degC z offset tempco and warms by 20 degC: the service's
+    calibrator switches to affine9+temperature_bias by itself, and the switch is a served
+    version whose calibration names the change and the held-out gain."""
+    rng = np.random.default_rng(7)
+    matrix, offset = _truth(rng)
+    t, raw = _stream(rng, matrix, offset, n_poses=150)
+    temp = 20.0 + 20.0 * t / t[-1]
+    raw = raw + np.outer(temp - 25.0, [0.0, 0.0, 4e-3])
+    dev = "insole-T-0001"
+    step = 200
+    seq = -1
+    with selecting_server.client("ingest") as c:
+        for seq, i in enumerate(range(0, len(t), step)):
+            sl = slice(i, i + step)
+            body = {"seq": seq, "t_s": t[sl].tolist(), "ax_g": raw[sl, 0].tolist(), "ay_g": raw[sl, 1].tolist(),
+                    "az_g": raw[sl, 2].tolist(), "temp_c": temp[sl].tolist()}
+            r = c.post(f"/devices/{dev}/samples", json=body)
+            assert r.status_code == 200, r.text
+    cal = selecting_server.wait_processed(dev, seq, timeout_s=180)
+    assert cal["model"] == "affine9+temperature_bias", cal
+    assert cal["params"]["tbz"] == pytest.approx(4e-3, abs=0.5e-3)
+    with selecting_server.client("read") as c:
+        hist = c.get(f"/devices/{dev}/calibration/history").json()
+    switches = [v for v in hist["versions"] if (v["calibration"] or {}).get("model_change")]
+    assert switches, [v["calibration"].get("model") for v in hist["versions"]]
+    change = switches[0]["calibration"]["model_change"]
+    assert change["from_model"] == "affine9" and change["change"] == "added"
+    assert change["effect"] == "temperature_bias"
+    assert change["heldout_rms_mg_after"] < change["heldout_rms_mg_before"]
+    assert switches[0]["provenance"]["refit"]["mode"] == "model_switch"
