@@ -13,23 +13,37 @@ Given still poses (a poses table, or the still windows of a samples recording):
    * level (RMS);
    * structure against temperature and against time (OLS slope and R²);
    * structure against orientation (R² on the per-axis gravity components);
-   * whiteness (lag-1 autocorrelation in time order).
+   * whiteness (lag-1 autocorrelation in time order), and the share of the residual
+     variance shared within still bouts.
+
+   The simulated noise is each pose's measured noise plus the correlated part of the
+   **noise model** (:mod:`selfcal.boutnoise`) estimated from the base fit's residuals: an
+   error shared by the windows of one still bout and an AR(1) term within the bout. The
+   model's independent excess (the floor) is not drawn, so that it still shows as a level
+   discrepancy. When the windows are not correlated within bouts (a chi-square test), the
+   model has no correlated part and everything below is as with independent noise.
 3. **Candidate effects.** ``temperature_bias``, ``temperature_scale``, ``time_drift_bias``
    and ``scale_nonlinearity``. Each extends the fitted model (``affine9+effect``) and the
    simulator. A candidate is supported when all three hold:
    * an F-test on the fit gives ``p < alpha / n_candidates`` (3 extra parameters
-     against the residual variance: the complexity penalty);
+     against the residual variance: the complexity penalty). Under correlated noise the
+     F statistic is divided by the effect's *design effect*: the ratio of the Wald
+     statistic of its estimate under independent noise to the same under the fitted
+     correlated noise (sandwich covariance, linearised at the base fit). It is 1 when
+     the noise model has no correlated part;
    * the held-out RMS improves by at least ``min_gain_rel``, averaged over a blocked
      cross-validation in time (contiguous blocks held out in turn: the standard for data
      ordered in time, and far less variable than one chronological split) and a k-fold
-     split by pose.
+     split by pose. Both hold out whole still bouts, so that a window is never predicted
+     from its own bout.
 
    With no supported candidate the answer is ``cause: null``.
 4. **Separability.** The poses may not be able to tell two candidates apart (one
    orientation: a temperature bias and a temperature scale both move the norm by
    ``c · dT`` along gravity). A rival that is itself significant and whose fit is worse
    than the best by less than ``separable_dchi2`` (χ² in residual-variance units: a
-   non-nested comparison) cannot be told apart by these poses. The evidence says so,
+   non-nested comparison; each candidate's χ² reduction divided by its design effect)
+   cannot be told apart by these poses. The evidence says so,
    reports the share of the best pattern the rival reproduces, and no cause is named.
 5. **Gain.** The extended model is refitted on all poses (its estimate has an sd). The
    held-out RMS before → after is reported on the chronological split: fit on the first
@@ -39,12 +53,13 @@ Given still poses (a poses table, or the still windows of a samples recording):
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import stats
 
+from selfcal.boutnoise import BoutNoise, Bouts, estimate_bout_noise, find_bouts
 from selfcal.errors import InputError
 from selfcal.fit import FitConfig, GuardConfig, PoseData, datasheet_prior, fit_poses, implausible, pose_sigma
 from selfcal.models import EFFECT_PARAMS, ErrorModel, Normalizer
@@ -81,6 +96,17 @@ class DiagnoseConfig(BaseModel):
     estimate_floor: bool = Field(
         True, description="estimate the residual floor (beyond measured noise) from the base fit, instead of [fit] sigma_floor_g"
     )
+    noise_model: Literal["bouts", "independent"] = Field(
+        "bouts",
+        description="bouts: correlated noise within still bouts, estimated from the base fit (simulation, F-tests, CV folds); "
+                    "independent: every window independent (the former behaviour)",
+    )
+    bout_gap_s: float = Field(60.0, ge=0, description="a still bout continues across gaps of at most this, s")
+    bout_angle_deg: float = Field(
+        5.0, ge=0, description="... and direction changes of at most this between consecutive windows, deg"
+    )
+    noise_max_lag_s: float = Field(900.0, gt=0, description="longest lag of the within-bout covariance fit, s")
+    noise_boot: int = Field(200, ge=0, description="bootstrap replicates (over bouts) for the noise-model sds")
 
     @classmethod
     def from_section(cls, section: dict[str, Any] | None) -> "DiagnoseConfig":
@@ -102,7 +128,8 @@ def _ols_slope_r2(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     return slope, r2
 
 
-def residual_stats(res_g: np.ndarray, gdir: np.ndarray, t_s: np.ndarray, temp_c: np.ndarray | None) -> dict[str, float]:
+def residual_stats(res_g: np.ndarray, gdir: np.ndarray, t_s: np.ndarray, temp_c: np.ndarray | None,
+                   bout: np.ndarray | None = None) -> dict[str, float]:
     """Residual statistics of one fit, shape-free numbers.
 
     Parameters
@@ -111,6 +138,9 @@ def residual_stats(res_g: np.ndarray, gdir: np.ndarray, t_s: np.ndarray, temp_c:
     gdir : (n, 3) unit gravity directions (calibrated)
     t_s : (n,) s
     temp_c : (n,) degC or None
+    bout : (n,) int still-bout labels, or None. With labels, ``bout_share`` is the share of
+        the residual variance (windows of bouts of two or more) that lies between bout
+        means (one-way ANOVA R²).
     """
     order = np.argsort(t_s, kind="stable")
     r = res_g[order] * 1e3
@@ -126,7 +156,21 @@ def residual_stats(res_g: np.ndarray, gdir: np.ndarray, t_s: np.ndarray, temp_c:
     ss = np.sum((r - r.mean()) ** 2)
     out["orientation_r2"] = float(1 - np.sum((r - design @ coef) ** 2) / ss) if ss > 0 else 0.0
     out["lag1_autocorr"] = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if len(r) > 3 and np.std(r) > 0 else float("nan")
+    if bout is not None:
+        out["bout_share"] = _bout_share(res_g * 1e3, np.asarray(bout))
     return out
+
+
+def _bout_share(r: np.ndarray, bout: np.ndarray) -> float:
+    """One-way ANOVA R² of residuals on bout labels, over bouts of two windows or more."""
+    size = np.bincount(bout)
+    multi = size[bout] >= 2
+    if multi.sum() < 3:
+        return float("nan")
+    r, b = r[multi], bout[multi]
+    mean_b = np.bincount(b, r) / np.maximum(np.bincount(b), 1)
+    ss = np.sum((r - r.mean()) ** 2)
+    return float(1 - np.sum((r - mean_b[b]) ** 2) / ss) if ss > 0 else float("nan")
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -175,9 +219,25 @@ def _cv_rms(model, data: _Data, folds: np.ndarray, fit_cfg: FitConfig, theta0) -
     return float(np.sqrt(np.mean(np.concatenate(sq))) * 1e3) if sq else float("nan")
 
 
-def _split_scores(model: ErrorModel, data: _Data, cfg: DiagnoseConfig, fit_cfg: FitConfig, theta0=None) -> dict[str, float]:
-    """Held-out RMS (mg) by blocked time CV (contiguous blocks), by pose CV (k folds) and on
-    the plain chronological split (first part fits, the rest is held out)."""
+def _cv_folds(data: _Data, cfg: DiagnoseConfig, bouts: Bouts) -> tuple[np.ndarray, np.ndarray]:
+    """Fold labels (n,) of the blocked time CV and of the k-fold CV, holding out whole bouts.
+
+    A bout goes to the time block of its first window; the k folds deal bouts in turn, in
+    the input order of their first windows. With one window per bout these are the
+    per-window blocks and ``arange(n) % k``.
+    """
+    span = max(np.ptp(data.t_s), 1e-9)
+    blocks = np.minimum(((data.t_s - data.t_s.min()) / span * cfg.time_blocks).astype(int), cfg.time_blocks - 1)
+    first = bouts.first_index()
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+    return blocks[first][bouts.label], rank[bouts.label] % cfg.pose_folds
+
+
+def _split_scores(model: ErrorModel, data: _Data, cfg: DiagnoseConfig, fit_cfg: FitConfig, theta0=None,
+                  bouts: Bouts | None = None) -> dict[str, float]:
+    """Held-out RMS (mg) by blocked time CV (contiguous blocks), by pose CV (k folds of
+    bouts) and on the plain chronological split (first part fits, the rest is held out)."""
     train, test = _time_split(data, cfg.time_split)
     out = {}
     try:
@@ -185,11 +245,61 @@ def _split_scores(model: ErrorModel, data: _Data, cfg: DiagnoseConfig, fit_cfg: 
         out["chrono"] = _heldout_rms(model, f.theta_u, data, test)
     except InputError:
         out["chrono"] = float("nan")
-    span = max(np.ptp(data.t_s), 1e-9)
-    blocks = np.minimum(((data.t_s - data.t_s.min()) / span * cfg.time_blocks).astype(int), cfg.time_blocks - 1)
+    blocks, folds = _cv_folds(data, cfg, bouts if bouts is not None else Bouts.singletons(data.t_s))
     out["time"] = _cv_rms(model, data, blocks, fit_cfg, theta0)
-    out["pose"] = _cv_rms(model, data, np.arange(len(data.u)) % cfg.pose_folds, fit_cfg, theta0)
+    out["pose"] = _cv_rms(model, data, folds, fit_cfg, theta0)
     return out
+
+
+def _correlated_covariances(model: ErrorModel, base_fit, data: _Data, noise: BoutNoise | None, bouts: Bouts,
+                            fit_cfg: FitConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """Linearised covariances (normalised units, (p, p)) of ``model``'s parameters at the
+    base fit: ``(A^-1, A^-1 M A^-1)``, under independent noise and under the fitted
+    correlated noise (sandwich), with ``A = J' W J + prior`` and ``M = J' W Sigma W J + prior``
+    (``J`` the Jacobian at the base fit, zero effect; ``W`` the inverse of each window's
+    variance; ``Sigma`` the noise model's covariance with the same diagonal). None when the
+    noise model has no correlated part (the two are then equal)."""
+    if noise is None or noise.correlated_var_g2 <= 0:
+        return None
+    theta0 = model.extend_theta(base_fit.theta_u, base_fit.model)
+    j = model.residual_jac(theta0, data.u, data.temp_c, data.t_s)[1]
+    var = base_fit.sigma_g**2
+    y = j / var[:, None]
+    lam = datasheet_prior(model, fit_cfg).precision()
+    binv = np.linalg.inv(j.T @ y + lam)
+    meat = y.T @ noise.cov_matvec(bouts, var, y) + lam
+    return binv, binv @ meat @ binv
+
+
+def _std_factor(covs: tuple[np.ndarray, np.ndarray] | None, p: int) -> np.ndarray:
+    """Per-parameter sd inflation (p,) from independent to correlated noise (1 without correlation)."""
+    if covs is None:
+        return np.ones(p)
+    return np.sqrt(np.diag(covs[1]) / np.diag(covs[0]))
+
+
+def _inflate(cov_u: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    """``cov_u`` with each sd multiplied by ``factor`` (correlations kept), (p, p)."""
+    return cov_u * np.outer(factor, factor)
+
+
+def _design_effect(covs: tuple[np.ndarray, np.ndarray] | None, sl: slice, estimate: np.ndarray) -> float:
+    """How many times the independent-noise F statistic over-counts an effect's evidence.
+
+    The Wald statistic of the effect's estimate (``estimate``, its parameters at ``sl``)
+    under the independent-noise covariance over the same under the correlated-noise
+    sandwich (:func:`_correlated_covariances`). Exactly 1 when the noise model has no
+    correlated part.
+    """
+    if covs is None:
+        return 1.0
+    v_ind, v_cor = covs[0][sl, sl], covs[1][sl, sl]
+    c = np.asarray(estimate, float)
+    w_ind = float(c @ np.linalg.solve(v_ind, c))
+    w_cor = float(c @ np.linalg.solve(v_cor, c))
+    if w_ind > 0 and w_cor > 0:
+        return w_ind / w_cor
+    return float(np.trace(np.linalg.solve(v_ind, v_cor)) / len(c))
 
 
 def _whitened_projection(fit, data: _Data):
@@ -256,17 +366,32 @@ def diagnose_poses(
     t_ref = float(t_s.min())
     base = ErrorModel(base_model, temp_ref, t_ref)
     base_fit = _fit(base, data, None, fit_cfg)
+    # each window's measured noise on the norm (g), without any floor
+    noise = pose_sigma(data.u, data.sd_u, data.count, fit_cfg.model_copy(update={"sigma_floor_g": 0.0}))
     if cfg.estimate_floor:
         # the floor is what the base model leaves beyond the measured noise (moment match)
-        noise = pose_sigma(data.u, data.sd_u, data.count, fit_cfg.model_copy(update={"sigma_floor_g": 0.0}))
         floor = float(np.sqrt(max(np.mean(base_fit.residuals_g**2 - noise**2), 0.0)))
         fit_cfg = fit_cfg.model_copy(update={"sigma_floor_g": max(floor, 1e-5)})
         base_fit = _fit(base, data, None, fit_cfg, base_fit.theta_u)
     a = base.apply(base_fit.theta_u, data.u)
     gdir = a / np.linalg.norm(a, axis=1, keepdims=True)
 
+    # ---------------------------------------------------------------- noise model
+    noise_model: BoutNoise | None = None
+    bouts = Bouts.singletons(t_s)
+    bout_labels = None
+    if cfg.noise_model == "bouts":
+        found = find_bouts(t_s, gdir, cfg.bout_gap_s, cfg.bout_angle_deg)
+        noise_model = estimate_bout_noise(base_fit.residuals_g, noise, found, cfg.noise_max_lag_s,
+                                          cfg.noise_boot, cfg.seed)
+        bout_labels = found.label
+        if noise_model.correlated_var_g2 > 0:
+            # correlated windows: bouts are the units of the simulation, the tests and the CV folds;
+            # without a correlated part every window is its own unit, as with independent noise
+            bouts = found
+
     # ---------------------------------------------------------------- discrepancy vs simulation
-    measured = residual_stats(base_fit.residuals_g, gdir, t_s, temp)
+    measured = residual_stats(base_fit.residuals_g, gdir, t_s, temp, bout_labels)
     rng = np.random.default_rng(cfg.seed)
     matrix, offset = base.linear(base_fit.theta_u)
     inv = np.linalg.inv(matrix)
@@ -276,9 +401,16 @@ def diagnose_poses(
     sims = []
     sim_residuals = None
     for _ in range(cfg.n_sim):
-        sim = _Data(raw_clean + rng.normal(0.0, 1.0, raw_clean.shape) * noise_sd, data.sd_u, data.count, t_s, temp)
+        raw_sim = raw_clean + rng.normal(0.0, 1.0, raw_clean.shape) * noise_sd
+        if noise_model is not None:
+            # the correlated excess (bout, AR(1)) moves each window along its gravity direction; the
+            # independent excess (the floor) stays out, as before, and shows as a level discrepancy
+            eps = noise_model.draw(rng, bouts, white=False)
+            if np.any(eps):
+                raw_sim = raw_sim + (gdir * eps[:, None]) @ inv.T
+        sim = _Data(raw_sim, data.sd_u, data.count, t_s, temp)
         f = fit_poses(base, sim.poses(), prior=datasheet_prior(base, fit_cfg), theta0_u=base_fit.theta_u, cfg=fit_cfg)
-        sims.append(residual_stats(f.residuals_g, gdir, t_s, temp))
+        sims.append(residual_stats(f.residuals_g, gdir, t_s, temp, bout_labels))
         if sim_residuals is None:
             sim_residuals = f.residuals_g
     discrepancy = {}
@@ -293,7 +425,7 @@ def diagnose_poses(
     discrepancy["noise_level_mg"] = _f(float(np.sqrt(np.mean(np.sum((noise_sd * gdir) ** 2, axis=1)))) * 1e3)
 
     # ---------------------------------------------------------------- candidates
-    base_scores = _split_scores(base, data, cfg, fit_cfg, base_fit.theta_u)
+    base_scores = _split_scores(base, data, cfg, fit_cfg, base_fit.theta_u, bouts)
     guard_cfg = GuardConfig.from_section(section(config, "guard"))
     n = len(data.u)
     chi2_base = float(np.sum((base_fit.residuals_g / base_fit.sigma_g) ** 2))
@@ -318,9 +450,14 @@ def diagnose_poses(
                             theta0_u=ext.extend_theta(base_fit.theta_u, base), cfg=fit_cfg)
         chi2_ext = float(np.sum((ext_fit.residuals_g / ext_fit.sigma_g) ** 2))
         dof = max(n - base.n_params - 3, 1)
-        fstat = max(chi2_base - chi2_ext, 0.0) / 3.0 / (chi2_ext / dof)
+        f_indep = max(chi2_base - chi2_ext, 0.0) / 3.0 / (chi2_ext / dof)
+        # correlated noise: the evidence the windows carry is divided by the design effect
+        covs = _correlated_covariances(ext, base_fit, data, noise_model, bouts, fit_cfg)
+        deff = _design_effect(covs, ext.index(eff), ext_fit.theta_u[ext.index(eff)])
+        std_factor = _std_factor(covs, ext.n_params)
+        fstat = f_indep / deff
         pval = float(stats.f.sf(fstat, 3, dof))
-        scores = _split_scores(ext, data, cfg, fit_cfg, ext_fit.theta_u)
+        scores = _split_scores(ext, data, cfg, fit_cfg, ext_fit.theta_u, bouts)
         # a fit that leaves the plausible range, or folds the poses onto a few directions
         # (a degenerate minimum of the norm objective), explains nothing physical
         why_implausible = implausible(ext, ext_fit.theta_u, guard_cfg)
@@ -334,22 +471,26 @@ def diagnose_poses(
         sl = ext.index(eff)
         unit, factor = EFFECT_UNITS[eff]
         est = ext_fit.theta_u[sl] * factor
-        est_sd = np.sqrt(np.diag(ext_fit.cov_u)[sl]) * factor
+        est_sd_ind = np.sqrt(np.diag(ext_fit.cov_u)[sl]) * factor
+        est_sd = est_sd_ind * std_factor[sl]
         cols = _effect_columns(eff, base_fit, data, sigma, q)
         pattern = cols @ (ext_fit.theta_u[sl])  # whitened residual pattern the effect explains
         entry.update(
-            chi2=chi2_ext, f_stat=_f(fstat), p_value=pval, heldout_rms_mg_time=_f(scores["time"]),
+            chi2=chi2_ext, dchi2_eff=(chi2_base - chi2_ext) / deff, f_stat=_f(fstat), p_value=pval,
+            f_stat_independent=_f(f_indep), design_effect=_f(deff), heldout_rms_mg_time=_f(scores["time"]),
             heldout_rms_mg_pose=_f(scores["pose"]), heldout_rms_mg_chrono=_f(scores["chrono"]),
             gain_time=_f(gain_time), gain_pose=_f(gain_pose), gain_cv=_f(np.nanmean([gain_time, gain_pose])),
             estimate={"unit": unit, "value": dict(zip("xyz", np.round(est, 6).tolist())),
-                      "std": dict(zip("xyz", np.round(est_sd, 6).tolist()))},
-            _fit=ext_fit, _cols=cols, _pattern=pattern,
+                      "std": dict(zip("xyz", np.round(est_sd, 6).tolist())),
+                      "std_independent": dict(zip("xyz", np.round(est_sd_ind, 6).tolist()))},
+            _fit=ext_fit, _cols=cols, _pattern=pattern, _std_factor=std_factor,
         )
         gain_cv = np.nanmean([gain_time, gain_pose])
         passes = (pval < cfg.alpha / len(EFFECTS)) and gain_cv >= cfg.min_gain_rel and why_implausible is None
         entry["supported"] = bool(passes)
+        deff_note = "" if deff == 1.0 else f"; design effect {deff:.1f} under the bout noise, F={f_indep:.1f} if independent"
         entry["evidence"] = (
-            f"F={fstat:.1f} (p={pval:.2g}, 3 extra parameters); held-out RMS {base_scores['time']:.3f} -> "
+            f"F={fstat:.1f} (p={pval:.2g}, 3 extra parameters{deff_note}); held-out RMS {base_scores['time']:.3f} -> "
             f"{scores['time']:.3f} mg by time blocks, {base_scores['pose']:.3f} -> {scores['pose']:.3f} mg by pose"
         )
         if not passes:
@@ -367,7 +508,9 @@ def diagnose_poses(
     cause = None
     ambiguous: list[str] = []
     if supported:
-        best = min(supported, key=lambda c: c["chi2"])
+        # the largest chi2 reduction, each divided by its design effect (with independent
+        # noise: the lowest chi2)
+        best = max(supported, key=lambda c: c["dchi2_eff"])
         # separability: a rival that also explains the data significantly and fits almost as
         # well (non-nested comparison, chi2 difference in residual-variance units) cannot be
         # told apart from the best by these poses
@@ -378,7 +521,7 @@ def diagnose_poses(
                 continue
             coef, *_ = np.linalg.lstsq(c["_cols"], pat, rcond=None)
             overlap = float(1 - np.sum((pat - c["_cols"] @ coef) ** 2) / max(pat @ pat, 1e-300))
-            dchi2 = (c["chi2"] - best["chi2"]) / s2
+            dchi2 = (best["dchi2_eff"] - c["dchi2_eff"]) / s2
             c["reproduces_best_r2"] = _f(overlap)
             c["dchi2_vs_best"] = _f(dchi2)
             if c["p_value"] < cfg.alpha / len(EFFECTS) and dchi2 < cfg.separable_dchi2:
@@ -408,7 +551,8 @@ def diagnose_poses(
         extended_model = {
             "model": ext.name, "temp_ref_c": ext.temp_ref_c, "t_ref_s": ext.t_ref_s,
             "params": ext.to_dict(normalizer.theta_to_raw(ext, full.theta_u)),
-            "std": dict(zip(ext.param_names, np.sqrt(np.diag(normalizer.cov_to_raw(ext, full.cov_u))).tolist())),
+            "std": dict(zip(ext.param_names, np.sqrt(np.diag(
+                normalizer.cov_to_raw(ext, _inflate(full.cov_u, best["_std_factor"])))).tolist())),
             "residual_rms_mg": full.residual_rms_mg,
         }
     arrays = None
@@ -418,19 +562,22 @@ def diagnose_poses(
         if cause is not None:
             arrays["res_ext_mg"] = next(c for c in candidates if c["name"] == cause)["_fit"].residuals_g * 1e3
     for c in candidates:
-        for k in ("_fit", "_cols", "_pattern", "chi2"):
+        for k in ("_fit", "_cols", "_pattern", "_std_factor", "chi2", "dchi2_eff"):
             c.pop(k, None)
     out = {
         "n_poses": n,
         "base_model": {
             "model": base.name,
             "params": base.to_dict(normalizer.theta_to_raw(base, base_fit.theta_u)),
-            "std": dict(zip(base.param_names, np.sqrt(np.diag(normalizer.cov_to_raw(base, base_fit.cov_u))).tolist())),
+            "std": dict(zip(base.param_names, np.sqrt(np.diag(normalizer.cov_to_raw(base, _inflate(
+                base_fit.cov_u, _std_factor(_correlated_covariances(base, base_fit, data, noise_model, bouts, fit_cfg),
+                                            base.n_params))))).tolist())),
             "residual_rms_mg": base_fit.residual_rms_mg,
             "undetermined": [nm for nm, d in zip(base.param_names, base_fit.determined) if not d],
             "temp_ref_c": temp_ref,
         },
         "discrepancy": discrepancy,
+        "noise_model": _noise_report(noise_model, cfg),
         "effects": candidates,
         "cause": cause,
         "ambiguous": ambiguous or None,
@@ -446,6 +593,15 @@ def diagnose_poses(
     out["soaks"] = soak_report(data.t_s, data.u, window_mean_variance(data.u, sd, count, normalizer), data.temp_c)
     if arrays is not None:
         out["_arrays"] = arrays
+    return out
+
+
+def _noise_report(noise_model: BoutNoise | None, cfg: DiagnoseConfig) -> dict:
+    """The report's ``noise_model`` section (mg, s), with the bout rule used."""
+    if noise_model is None:
+        return {"model": "independent: each window's measured noise and the floor", "estimated": False}
+    out = noise_model.to_report()
+    out["bout_rule"] = {"gap_s": cfg.bout_gap_s, "angle_deg": cfg.bout_angle_deg}
     return out
 
 

@@ -1,0 +1,100 @@
+"""The correlated-noise model of still windows (selfcal.boutnoise): its algebra, and that
+its estimator recovers an injected per-bout error."""
+
+import numpy as np
+import pytest
+
+from boutgen import bout_case
+from selfcal.boutnoise import BoutNoise, find_bouts, linear_scan
+from selfcal.diagnosis import diagnose_poses
+
+
+def _dense_cov(model: BoutNoise, bouts, t_s, marginal):
+    """The model's covariance as a dense matrix (test reference), g²."""
+    same = bouts.label[:, None] == bouts.label[None, :]
+    dt = np.abs(t_s[:, None] - t_s[None, :])
+    cov = np.where(same, model.sigma_bout_g**2 + model.sigma_ar_g**2 * np.exp(-dt / model.tau_s), 0.0)
+    cov[np.diag_indices(len(t_s))] = marginal
+    return cov
+
+
+def _small_case(rng, n=40):
+    t = np.cumsum(rng.choice([10.0, 10.0, 20.0, 100.0], n))
+    perm = rng.permutation(n)  # input order need not be time order
+    g = np.tile([0.0, 0.0, 1.0], (n, 1))
+    g[n // 2:] = [1.0, 0.0, 0.0]  # a turn in the middle splits a bout
+    return t[perm], g[perm]
+
+
+def test_linear_scan_is_the_recursion():
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0, 1, 50)
+    a[[0, 7, 20]] = 0.0
+    b = rng.normal(size=(50, 3))
+    u, prev = np.zeros_like(b), np.zeros(3)
+    for i in range(50):
+        prev = a[i] * prev + b[i]
+        u[i] = prev
+    assert np.allclose(linear_scan(a, b), u, rtol=0, atol=1e-12)
+    assert np.allclose(linear_scan(a, b[:, 0]), u[:, 0], rtol=0, atol=1e-12)
+
+
+def test_bouts_split_at_gaps_and_turns():
+    rng = np.random.default_rng(2)
+    t, g = _small_case(rng)
+    bouts = find_bouts(t, g, gap_s=30.0, angle_deg=5.0)
+    order = np.argsort(t)
+    lab = bouts.label[order]
+    gaps = np.diff(t[order])
+    turns = np.sum(g[order][1:] * g[order][:-1], axis=1) < np.cos(np.deg2rad(5.0))
+    assert np.array_equal(lab[1:] != lab[:-1], (gaps > 30.0) | turns)
+    assert bouts.n_bouts == 1 + int(np.sum((gaps > 30.0) | turns))
+
+
+def test_covariance_product_and_draws_match_the_dense_covariance():
+    rng = np.random.default_rng(3)
+    t, g = _small_case(rng)
+    bouts = find_bouts(t, g, gap_s=30.0)
+    model = BoutNoise(sigma_bout_g=2e-3, sigma_ar_g=1e-3, tau_s=50.0)
+    marginal = np.full(len(t), 9e-6)
+    dense = _dense_cov(model, bouts, t, marginal)
+    y = rng.normal(size=(len(t), 2))
+    assert np.allclose(model.cov_matvec(bouts, marginal, y), dense @ y, rtol=1e-12, atol=0)
+    # draws (no white part): covariance of 20 000 draws against the model's, 3 % of the largest entry
+    draws = np.array([model.draw(rng, bouts) for _ in range(20_000)])
+    expected = dense.copy()
+    expected[np.diag_indices(len(t))] = model.correlated_var_g2
+    assert np.max(np.abs(np.cov(draws.T) - expected)) < 0.03 * expected.max()
+
+
+def _noise_model(poses):
+    rep = diagnose_poses(poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"],
+                         config={"diagnose": {"n_sim": 2}})
+    return rep["noise_model"]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_an_injected_per_bout_error_is_recovered(seed):
+    """200 bouts of 2-40 windows, 2 mg per bout and 0.5 mg per window on top of 0.27 mg
+    measured noise: the bout and white sds within 3 bootstrap sds, no AR term invented."""
+    poses, truth = bout_case(np.random.default_rng(seed), sigma_bout_mg=2.0, sigma_white_mg=0.5)
+    nm = _noise_model(poses)
+    sd = nm["std"]
+    assert nm["independence_test"]["p"] < 1e-3
+    assert abs(nm["sigma_bout_mg"] - 2.0) <= 3 * sd["sigma_bout_mg"]
+    assert abs(nm["sigma_white_mg"] - 0.5) <= 3 * sd["sigma_white_mg"]
+    assert nm["sigma_ar_mg"] ** 2 <= 0.1 * nm["sigma_bout_mg"] ** 2  # spurious AR share <= 10 %
+    assert abs(nm["measured_noise_mg"] - truth["noise_mg"]) < 0.02
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_bout_and_ar_terms_are_told_apart(seed):
+    """300 bouts of 10-60 windows, 1.5 mg per bout plus a 1.5 mg AR(1) with tau 200 s: the
+    correlated variance within 3 bootstrap sds, each sd within 0.4 mg, tau within 2x.
+    (A 0.3 mg white part next to a short-tau AR term is not resolved and not checked.)"""
+    poses, _ = bout_case(np.random.default_rng(seed), n_bouts=300, windows=(10, 60), sigma_bout_mg=1.5,
+                         sigma_ar_mg=1.5, tau_s=200.0, sigma_white_mg=0.3)
+    nm = _noise_model(poses)
+    assert abs(nm["correlated_var_mg2"] - 4.5) <= 3 * nm["std"]["correlated_var_mg2"]
+    assert abs(nm["sigma_bout_mg"] - 1.5) <= 0.4 and abs(nm["sigma_ar_mg"] - 1.5) <= 0.4
+    assert 100.0 <= nm["tau_s"] <= 400.0
