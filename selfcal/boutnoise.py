@@ -219,15 +219,15 @@ class BoutNoise:
             out += u
         return out
 
-    def cov_matvec(self, bouts: Bouts, marginal_var_g2: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """``Sigma @ y`` for the full residual covariance.
+    def cov_matvec(self, bouts: Bouts, indep_var_g2: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """``Sigma @ y`` for the residual covariance of the model.
 
         Parameters
         ----------
         bouts : Bouts
-        marginal_var_g2 : (n,) each window's total variance (g²); the diagonal of Sigma.
-            The correlated part is carved out of it: the independent part is
-            ``marginal - sigma_bout^2 - sigma_ar^2`` (floored at 1 % of the marginal).
+        indep_var_g2 : (n,) each window's independent variance (g²): its measured noise
+            ``s_i^2`` plus ``sigma_white^2``; Sigma's diagonal is this plus
+            ``sigma_bout^2 + sigma_ar^2``
         y : (n,) or (n, m), input order
 
         Returns
@@ -236,12 +236,9 @@ class BoutNoise:
         """
         y = np.asarray(y, float)
         col = (lambda v: v) if y.ndim == 1 else (lambda v: v[:, None])
-        var = np.asarray(marginal_var_g2, float)
-        indep = np.maximum(var - self.correlated_var_g2, 0.01 * var)
-        out = col(indep) * y
+        out = col(np.asarray(indep_var_g2, float)) * y
         if self.sigma_bout_g > 0:
-            shape = (bouts.n_bouts,) + y.shape[1:]
-            sums = np.zeros(shape)
+            sums = np.zeros((bouts.n_bouts,) + y.shape[1:])
             np.add.at(sums, bouts.label, y)
             out = out + self.sigma_bout_g**2 * sums[bouts.label]
         if self.sigma_ar_g > 0:

@@ -251,14 +251,50 @@ def _split_scores(model: ErrorModel, data: _Data, cfg: DiagnoseConfig, fit_cfg: 
     return out
 
 
+def _not_testable(effect: str, temp_c: np.ndarray | None, t_s: np.ndarray, cfg: DiagnoseConfig) -> str | None:
+    """Why a candidate effect cannot be tested on these poses (temperature, time span), or None."""
+    if effect.startswith("temperature") and temp_c is None:
+        return "not testable: the recording has no temperature"
+    if effect.startswith("temperature") and np.ptp(temp_c) < cfg.min_temp_range_c:
+        return f"not testable: temperature range {np.ptp(temp_c):.1f} degC < {cfg.min_temp_range_c} degC"
+    if effect == "time_drift_bias" and np.ptp(t_s) < cfg.min_time_span_h * 3600:
+        return f"not testable: time span {np.ptp(t_s) / 3600:.1f} h < {cfg.min_time_span_h} h"
+    return None
+
+
+def _noise_residuals(base_fit, data: _Data, effects: list[str]) -> np.ndarray:
+    """Base-fit residuals (g, (n,)) with every testable candidate effect's pattern removed.
+
+    The candidates' Jacobian columns at the base fit (zero effect), with the base model's,
+    are projected out in the fit's weighted metric. The noise model is estimated from
+    these: an effect the base model misses is smooth in time, so left in it would be taken
+    for noise correlated within bouts, and its own evidence discounted by it.
+    """
+    sigma = base_fit.sigma_g
+    cols = [base_fit.model.residual_jac(base_fit.theta_u, data.u, data.temp_c, data.t_s)[1]]
+    for eff in effects:
+        ext = base_fit.model.with_effects((eff,))
+        theta = ext.extend_theta(base_fit.theta_u, base_fit.model)
+        cols.append(ext.residual_jac(theta, data.u, data.temp_c, data.t_s)[1][:, ext.index(eff)])
+    jw = np.column_stack(cols) / sigma[:, None]
+    rw = base_fit.residuals_g / sigma
+    coef, *_ = np.linalg.lstsq(jw, rw, rcond=None)
+    return (rw - jw @ coef) * sigma
+
+
 def _correlated_covariances(model: ErrorModel, base_fit, data: _Data, noise: BoutNoise | None, bouts: Bouts,
-                            fit_cfg: FitConfig) -> tuple[np.ndarray, np.ndarray] | None:
+                            noise_g: np.ndarray, fit_cfg: FitConfig) -> tuple[np.ndarray, np.ndarray] | None:
     """Linearised covariances (normalised units, (p, p)) of ``model``'s parameters at the
     base fit: ``(A^-1, A^-1 M A^-1)``, under independent noise and under the fitted
-    correlated noise (sandwich), with ``A = J' W J + prior`` and ``M = J' W Sigma W J + prior``
-    (``J`` the Jacobian at the base fit, zero effect; ``W`` the inverse of each window's
-    variance; ``Sigma`` the noise model's covariance with the same diagonal). None when the
-    noise model has no correlated part (the two are then equal)."""
+    correlated noise (sandwich), with ``A = J' W J + prior`` and ``M = J' W Sigma W J + prior``.
+
+    ``J`` is the Jacobian at the base fit (zero effect) and ``W`` the inverse of each
+    window's variance in the fit, ``sigma_g^2``. ``Sigma`` has the noise model's
+    correlations on the fit's variances: ``Sigma_ij = rho_ij sigma_g,i sigma_g,j`` (the
+    level is the F test's business, the correlation the design effect's). ``noise_g`` (n,)
+    is each window's measured noise (g). None when the noise model has no correlated part
+    (the two covariances are then equal).
+    """
     if noise is None or noise.correlated_var_g2 <= 0:
         return None
     theta0 = model.extend_theta(base_fit.theta_u, base_fit.model)
@@ -267,7 +303,9 @@ def _correlated_covariances(model: ErrorModel, base_fit, data: _Data, noise: Bou
     y = j / var[:, None]
     lam = datasheet_prior(model, fit_cfg).precision()
     binv = np.linalg.inv(j.T @ y + lam)
-    meat = y.T @ noise.cov_matvec(bouts, var, y) + lam
+    indep = noise_g**2 + noise.sigma_white_g**2
+    scale = np.sqrt(var / (indep + noise.correlated_var_g2))[:, None]  # model marginal -> fit marginal
+    meat = y.T @ (scale * noise.cov_matvec(bouts, indep, scale * y)) + lam
     return binv, binv @ meat @ binv
 
 
@@ -382,8 +420,9 @@ def diagnose_poses(
     bout_labels = None
     if cfg.noise_model == "bouts":
         found = find_bouts(t_s, gdir, cfg.bout_gap_s, cfg.bout_angle_deg)
-        noise_model = estimate_bout_noise(base_fit.residuals_g, noise, found, cfg.noise_max_lag_s,
-                                          cfg.noise_boot, cfg.seed)
+        testable = [e for e in EFFECTS if _not_testable(e, temp, t_s, cfg) is None]
+        noise_model = estimate_bout_noise(_noise_residuals(base_fit, data, testable), noise, found,
+                                          cfg.noise_max_lag_s, cfg.noise_boot, cfg.seed)
         bout_labels = found.label
         if noise_model.correlated_var_g2 > 0:
             # correlated windows: bouts are the units of the simulation, the tests and the CV folds;
@@ -434,16 +473,9 @@ def diagnose_poses(
     for eff in EFFECTS:
         ext = ErrorModel(f"{base.base}+{eff}", temp_ref, t_ref)
         entry: dict[str, Any] = {"name": eff, "selected": False, "evidence": "", "estimate": None}
-        if eff.startswith("temperature") and temp is None:
-            entry["evidence"] = "not testable: the recording has no temperature"
-            candidates.append(entry)
-            continue
-        if eff.startswith("temperature") and np.ptp(temp) < cfg.min_temp_range_c:
-            entry["evidence"] = f"not testable: temperature range {np.ptp(temp):.1f} degC < {cfg.min_temp_range_c} degC"
-            candidates.append(entry)
-            continue
-        if eff == "time_drift_bias" and np.ptp(t_s) < cfg.min_time_span_h * 3600:
-            entry["evidence"] = f"not testable: time span {np.ptp(t_s) / 3600:.1f} h < {cfg.min_time_span_h} h"
+        why_not = _not_testable(eff, temp, t_s, cfg)
+        if why_not:
+            entry["evidence"] = why_not
             candidates.append(entry)
             continue
         ext_fit = fit_poses(ext, data.poses(), prior=datasheet_prior(ext, fit_cfg),
@@ -452,7 +484,7 @@ def diagnose_poses(
         dof = max(n - base.n_params - 3, 1)
         f_indep = max(chi2_base - chi2_ext, 0.0) / 3.0 / (chi2_ext / dof)
         # correlated noise: the evidence the windows carry is divided by the design effect
-        covs = _correlated_covariances(ext, base_fit, data, noise_model, bouts, fit_cfg)
+        covs = _correlated_covariances(ext, base_fit, data, noise_model, bouts, noise, fit_cfg)
         deff = _design_effect(covs, ext.index(eff), ext_fit.theta_u[ext.index(eff)])
         std_factor = _std_factor(covs, ext.n_params)
         fstat = f_indep / deff
@@ -570,7 +602,7 @@ def diagnose_poses(
             "model": base.name,
             "params": base.to_dict(normalizer.theta_to_raw(base, base_fit.theta_u)),
             "std": dict(zip(base.param_names, np.sqrt(np.diag(normalizer.cov_to_raw(base, _inflate(
-                base_fit.cov_u, _std_factor(_correlated_covariances(base, base_fit, data, noise_model, bouts, fit_cfg),
+                base_fit.cov_u, _std_factor(_correlated_covariances(base, base_fit, data, noise_model, bouts, noise, fit_cfg),
                                             base.n_params))))).tolist())),
             "residual_rms_mg": base_fit.residual_rms_mg,
             "undetermined": [nm for nm, d in zip(base.param_names, base_fit.determined) if not d],
