@@ -15,6 +15,47 @@ def _fmt(x, nd=3):
     return str(x)
 
 
+def _noise_model_lines(nm: dict | None) -> list[str]:
+    """Markdown lines of the report's ``noise_model`` section (empty without one)."""
+    if not nm or not nm.get("estimated"):
+        return []
+    sd = nm.get("std") or {}
+
+    def pm(key):
+        return f"{_fmt(nm.get(key))}" + (f" ± {_fmt(sd[key])}" if sd.get(key) is not None else "")
+
+    rule = nm.get("bout_rule") or {}
+    test = nm.get("independence_test") or {}
+    lines = [
+        "## Noise model",
+        "",
+        f"Still bouts: consecutive windows at most {_fmt(rule.get('gap_s'))} s apart, turning at most "
+        f"{_fmt(rule.get('angle_deg'))}° between windows: {nm['n_bouts']} bouts, {nm['n_multi_window_bouts']} of two "
+        f"windows or more ({nm['n_windows_in_multi_window_bouts']} windows). Independence within bouts: "
+        f"χ² {_fmt(test.get('chi2'))} for {test.get('dof')} bouts, p = {_fmt(test.get('p'))}.",
+        "",
+    ]
+    if nm.get("correlated_var_mg2"):
+        tau = sd.get("tau_s_16_84")
+        lines += [
+            "| term | value |",
+            "|---|---|",
+            f"| measured noise per window (rms) | {_fmt(nm.get('measured_noise_mg'))} mg |",
+            f"| shared by a bout | {pm('sigma_bout_mg')} mg |",
+            f"| AR(1) within a bout | {pm('sigma_ar_mg')} mg, τ {_fmt(nm.get('tau_s'))} s"
+            + (f" (16–84 %: {_fmt(tau[0])}–{_fmt(tau[1])} s)" if tau else "") + " |",
+            f"| independent excess | {pm('sigma_white_mg')} mg |",
+            f"| correlated share of the variance | {_fmt(nm.get('correlated_share'))} |",
+            "",
+            "The simulation draws the bout and AR(1) terms; the F statistics are divided by each effect's design "
+            "effect, and the cross-validation holds out whole bouts.",
+            "",
+        ]
+    else:
+        lines += [nm.get("why", "No correlated part: the windows are treated as independent."), ""]
+    return lines
+
+
 def write_report(report: dict, out_dir: str | Path) -> Path:
     """Write ``report.md`` and PNG plots into ``out_dir``; returns the Markdown path.
 
@@ -115,6 +156,7 @@ def write_report(report: dict, out_dir: str | Path) -> Path:
         f"Measured / simulated RMS: {_fmt(d.get('rms_ratio_measured_over_simulated'))}; per-pose noise level "
         f"{_fmt(d.get('noise_level_mg'))} mg.",
         "",
+        *_noise_model_lines(report.get("noise_model")),
         "## Candidate effects",
         "",
         "| effect | supported | selected | F | held-out gain (time, pose) | estimate (x, y, z) ± sd | evidence |",

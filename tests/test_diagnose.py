@@ -113,10 +113,12 @@ def test_cli_diagnose_json_and_report(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_ggir_record_correlated_noise_simulates_the_measured_lag1_and_still_names_temperature_bias():
+def test_ggir_record_correlated_noise_simulates_the_measured_lag1_and_still_names_temperature_bias(tmp_path):
     """84-h wrist record: with the bout noise model estimated from the base fit, the
     simulated lag-1 autocorrelation is within 0.1 of the measured one (it was 0.00 against
     0.93 with independent noise), and the cause is still temperature_bias."""
+    from selfcal.report import write_report
+
     rec = read_recording(DATA / "ggir-wrist-84h/poses.csv")
     rep, _ = diagnose_recording(rec, {"diagnose": {"n_sim": 5}})
     lag1 = rep["discrepancy"]["lag1_autocorr"]
@@ -130,6 +132,8 @@ def test_ggir_record_correlated_noise_simulates_the_measured_lag1_and_still_name
     tb = next(x for x in rep["effects"] if x["name"] == "temperature_bias")
     assert tb["design_effect"] > 10 and tb["f_stat"] < tb["f_stat_independent"] / 10
     assert tb["estimate"]["std"]["z"] > 3 * tb["estimate"]["std_independent"]["z"]
+    md = write_report(rep, tmp_path).read_text()  # the Markdown report shows the fitted noise model
+    assert "## Noise model" in md and "shared by a bout" in md
 
 
 def _diagnose_both(poses):
