@@ -116,10 +116,12 @@ def _rng_for(name: str) -> int:
 
 
 def run_selfcal(ps: PoseSet, model: str = "affine9") -> Cal:
-    """The online calibrator as shipped: feed_poses then flush, calibration() -> matrix/offset."""
+    """The online calibrator as shipped, but with the model fixed (this comparison scores
+    matrix/offset plus a temperature bias, not an effect model selection might add):
+    feed_poses then flush, calibration() -> matrix/offset."""
     nz = ps.normalizer
     t0 = time.perf_counter()
-    cal = OnlineCalibrator(model=model)
+    cal = OnlineCalibrator({"selection": {"enabled": False}}, model=model)
     events = cal.feed_poses(nz.to_u(ps.mean), ps.sd / nz.scale, ps.n, ps.t_s, ps.temp_c)
     events += cal.flush()
     c = cal.calibration()

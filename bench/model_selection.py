@@ -74,7 +74,7 @@ def main(argv=None) -> int:
         print(f"\n## no effect: {args.clean_devices} insoles x {args.days:g} days ({time.perf_counter() - t0:.0f} s)")
         print(f"false switches: {len(switched)}/{args.clean_devices} devices"
               + "".join(f"\n  seed {r['seed']}: " + ", ".join(f"day {s['day']:.1f} {s['change']} {s['effect']} "
-                                                            f"(z {s['heldout_z']}, chi2 {s['wald_chi2']})"
+                                                            f"(z {s['heldout_z_larger_model']}, chi2 {s['wald_chi2']})"
                                                             for s in r["model_switches"]) for r in switched))
     return 0
 

@@ -50,6 +50,7 @@ def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, 
             cfg.setdefault("selection", {})["enabled"] = False
         run = calibrate_path(path, model, cfg, columns=columns)  # streamed: bounded memory
         row["device"] = _device_name(run.meta)
+        row["model"] = run.calibrator.model.name  # model selection may have extended the one asked for
         store = run.calibrator.store
         summ = store.summary()
         if summ["t_span_s"]:
@@ -70,9 +71,12 @@ def calibrate_one(path: str, model: str, config_path: str | None, out_dir: str, 
             cal = run.calibration
             row["status"] = cal["status"]
             row["predicted_sphere_rms_mg"] = round(float(cal["predicted_sphere_rms_mg"]), 4)
-            if len(store):
+            model_now = run.calibrator.model
+            with_temp = np.isfinite(store.mean_temp()) if model_now.uses_temperature else np.ones(len(store), bool)
+            if with_temp.any():  # a temperature model scores the cells that have a temperature
                 theta = np.asarray(run.calibrator.current["theta_u"])
-                after = run.calibrator.model.residuals(theta, poses.mean, poses.temp_c, poses.t_s)
+                p = store.pose_data(with_temp)
+                after = model_now.residuals(theta, p.mean, p.temp_c, p.t_s)
                 row["residual_after_mg"] = round(float(np.sqrt(np.mean(after**2)) * 1e3), 4)
             target = Path(out_dir) / (Path(path).name + ".cal.json")
             tmp = target.with_name(target.name + ".tmp")

@@ -61,6 +61,7 @@ from selfcal.poses import PoseConfig, PoseStore
 from selfcal.selection import (
     Comparison,
     SelectionConfig,
+    change_record,
     compare,
     extend_prior,
     stops_paying,
@@ -165,7 +166,7 @@ class OnlineCalibrator:
         self.t_last_s: float | None = None
         self.n_samples = 0
         # online model selection: when it last looked, which effects it added, its recent checks
-        self.selection: dict = {"last_check_t_s": None, "added": [], "checks": []}
+        self.selection: dict = {"last_check_t_s": None, "added": [], "checks": [], "n_checks": 0}
 
     # ------------------------------------------------------------------ status
     @property
@@ -311,7 +312,7 @@ class OnlineCalibrator:
     # ------------------------------------------------------------------ refit
     def _usable(self) -> np.ndarray:
         """Cells the model can use (temperature models need cells with a temperature)."""
-        if any(e.startswith("temperature") for e in self.model.effects):
+        if self.model.uses_temperature:
             return np.isfinite(self.store.mean_temp())
         return np.ones(len(self.store), dtype=bool)
 
@@ -381,75 +382,102 @@ class OnlineCalibrator:
 
     # ------------------------------------------------------------------ model selection
     def _selection_due(self, t_now: float, n_cells: int) -> bool:
+        """A check of the model is due: selection on, a published model, enough cells, and
+        ``every_hours`` of data since the last check (or since the first cell)."""
         c = self.sel_cfg
-        if not c.enabled or self.current is None or n_cells < c.min_cells:
+        if not c.enabled or self.current is None or n_cells < c.min_cells or not len(self.store):
             return False
         last = self.selection.get("last_check_t_s")
-        return last is None or t_now - float(last) >= c.every_hours * 3600.0
+        since = float(self.store.t_first.min()) if last is None else float(last)
+        return t_now - since >= c.every_hours * 3600.0
+
+    def set_selection(self, section_: dict | None) -> None:
+        """Replace the ``[selection]`` settings (a service applies its current ones to a
+        restored device); the selection history is kept."""
+        self.sel_cfg = SelectionConfig.from_section(section_)
+        self.config["selection"] = dict(section_ or {})
 
     def _prior_of(self, target: ErrorModel) -> Prior:
         """The prior of another model: this one's (datasheet or installed) for the shared terms."""
         return extend_prior(self.prior(), self.model, target, datasheet_prior(target, self.fit_cfg))
 
+    def _candidate(self, effect: str) -> ErrorModel:
+        """This model with ``effect`` added; a new time drift is referred to the first cell's
+        time (an epoch-based clock would otherwise put t_ref decades away)."""
+        names = self.model.effects + (effect,)
+        t_ref = self.model.t_ref_s
+        if effect == "time_drift_bias" and "time_drift_bias" not in self.model.effects and len(self.store):
+            t_ref = float(self.store.t_first.min())
+        return ErrorModel("+".join((self.model.base,) + names), self.model.temp_ref_c, t_ref)
+
     def _select(self, t_now: float) -> dict | None:
-        """One check of the model (see :mod:`selfcal.selection`); the switch event, or None."""
+        """One check of the model (see :mod:`selfcal.selection`); the switch event, or None.
+
+        Depends only on the pose store and the published model (not on what an earlier
+        refit left in memory), so a calibrator restored from its state decides the same."""
         c = self.sel_cfg
         self.selection["last_check_t_s"] = t_now
+        self.selection["n_checks"] = int(self.selection.get("n_checks", 0)) + 1
         theta = np.asarray(self.current["theta_u"], float)
-        floor_cfg = getattr(self, "_fit_cfg_now", None) or self.fit_cfg.model_copy(
-            update={"sigma_floor_g": self.sched_cfg.cell_floor_g})
         temps = self.store.mean_temp()
         folds_all = self.store.folds()
         clusters_all = self.store.clusters()
         clip = c.clip_mg * 1e-3
         results: list[tuple[str, Comparison]] = []
-        cv_cache: dict[bool, dict] = {}
+        prepared: dict[bool, tuple] = {}
 
-        def cells(with_temp: bool) -> np.ndarray:
-            return np.isfinite(temps) if with_temp else np.ones(len(self.store), dtype=bool)
+        def cells(with_temp: bool) -> tuple:
+            """(mask, data with the noise the current model's fit shows, fit config, small-model CV cache)."""
+            if with_temp not in prepared:
+                mask = np.isfinite(temps) if with_temp else np.ones(len(self.store), dtype=bool)
+                data = self.store.pose_data(mask, t_now, self._age_var())
+                _, data, cfg, _ = self._fit_store(data, mask, self.prior(), theta)
+                prepared[with_temp] = (mask, data, cfg, {})
+            return prepared[with_temp]
 
-        # drop: an effect selection added that no longer pays
-        for e in [x for x in self.selection.get("added", []) if x in self.model.effects]:
-            small = self.model.with_effects(tuple(x for x in self.model.effects if x != e))
-            mask = cells(any(x.startswith("temperature") for x in self.model.effects))
-            data = self.store.pose_data(mask, t_now, self._age_var())
-            comp = compare(small, self.model, data, folds_all[mask], prior_small=self._prior_of(small),
-                           prior_large=self.prior(), theta_small=small.extend_theta(theta, self.model),
-                           fit_cfg=floor_cfg, clip_g=clip, clusters=clusters_all[mask],
-                           cv_only_if=wald_not_significant_to_keep(c))
-            results.append(("drop", comp))
-            if stops_paying(comp, c):
-                return self._switch(small, comp, "dropped", t_now, results)
-        # add: the best supported candidate
-        best = None
-        for e in c.candidates:
-            if e in self.model.effects:
-                continue
-            large = self.model.with_effects(self.model.effects + (e,))
-            with_temp = any(x.startswith("temperature") for x in large.effects)
-            mask = cells(with_temp)
-            if mask.sum() < c.min_cells:
-                continue
-            data = self.store.pose_data(mask, t_now, self._age_var())
-            why = selection_applicable(e, data, c)
-            if why:
-                continue
-            comp = compare(self.model, large, data, folds_all[mask], prior_small=self.prior(),
-                           prior_large=self._prior_of(large), theta_small=theta, fit_cfg=floor_cfg, clip_g=clip,
-                           cv_small=cv_cache.setdefault(with_temp, {}), clusters=clusters_all[mask],
-                           cv_only_if=wald_significant(c))
-            results.append(("add", comp))
-            # the largest relative held-out gain wins (two candidates can both be supported, e.g. a
-            # temperature bias and scale on flat poses: the better predictor goes in first)
-            if supports(comp, c) and (best is None or comp.gain_rel > best.gain_rel):
-                best = comp
-        self._log_check(t_now, results, None)
-        if best is not None:
-            return self._switch(ErrorModel(best.large, self.model.temp_ref_c, self.model.t_ref_s), best, "added",
-                                t_now, results)
-        return None
+        try:
+            # drop: an effect selection added that no longer pays
+            for e in [x for x in self.selection.get("added", []) if x in self.model.effects]:
+                small = self.model.with_effects(tuple(x for x in self.model.effects if x != e))
+                mask, data, cfg, _ = cells(self.model.uses_temperature)
+                comp = compare(small, self.model, data, folds_all[mask], prior_small=self._prior_of(small),
+                               prior_large=self.prior(), theta_small=small.extend_theta(theta, self.model),
+                               fit_cfg=cfg, clip_g=clip, clusters=clusters_all[mask],
+                               cv_only_if=wald_not_significant_to_keep(c))
+                results.append(("drop", comp))
+                if stops_paying(comp, c):
+                    return self._switch(small, comp, "dropped", t_now, results)
+            # add: the best supported candidate
+            supported: list[Comparison] = []
+            for e in c.candidates:
+                if e in self.model.effects:
+                    continue
+                large = self._candidate(e)
+                mask, data, cfg, cv_small = cells(large.uses_temperature)
+                if mask.sum() < c.min_cells or selection_applicable(e, data, c):
+                    continue
+                comp = compare(self.model, large, data, folds_all[mask], prior_small=self.prior(),
+                               prior_large=self._prior_of(large), theta_small=theta, fit_cfg=cfg, clip_g=clip,
+                               cv_small=cv_small, clusters=clusters_all[mask], cv_only_if=wald_significant(c))
+                results.append(("add", comp))
+                if supports(comp, c):
+                    supported.append(comp)
+        except (InputError, np.linalg.LinAlgError) as exc:  # a check that cannot be made is logged, never raised
+            self._log_check(t_now, results, f"not decided: {exc}")
+            return None
+        if not supported:
+            self._log_check(t_now, results, None)
+            return None
+        # the largest relative held-out gain wins. Two can be supported at once (a temperature
+        # bias and a scale on flat poses): waiting for data that separate them would leave the
+        # device on the base model, which predicts worse than either, so the better one goes in
+        # now, and a rival that went in first is dropped once the other has joined
+        best = max(supported, key=lambda x: x.gain_rel)
+        return self._switch(ErrorModel(best.large, self.model.temp_ref_c, self._candidate(best.effect).t_ref_s),
+                            best, "added", t_now, results)
 
     def _log_check(self, t_now: float, results: list, decision: str | None) -> None:
+        """Keep the last 10 checks: ``{"t_s", "decision" (None: no change), "tested": [comparison dicts]}``."""
         self.selection["checks"] = (self.selection.get("checks", []) + [{
             "t_s": t_now, "decision": decision,
             "tested": [dict(comp.to_dict(), test=kind) for kind, comp in results]}])[-10:]
@@ -458,20 +486,24 @@ class OnlineCalibrator:
         """Refit the store under ``target`` and publish it as a model change; None if it cannot be."""
         old_model, old_seed = self.model, self.seeded_prior
         if self.seeded_prior is not None:
-            p = extend_prior(self.prior(), self.model, target, datasheet_prior(target, self.fit_cfg))
+            p = self._prior_of(target)
             self.seeded_prior = {"mean": p.mean.tolist(), "cov": p.cov.tolist()}
         theta0 = target.extend_theta(np.asarray(self.current["theta_u"], float), self.model)
         self.model = target
-        usable = self._usable()
-        data = self.store.pose_data(usable, t_now, self._age_var())
+        fit = why = None
         try:
+            usable = self._usable()
+            data = self.store.pose_data(usable, t_now, self._age_var())
             fit, data, cfg, c_noise = self._fit_store(data, usable, self.prior(), theta0)
-        except InputError:
-            fit = None
-        why = None if fit is None or not fit.success else implausible(target, fit.theta_u, self.guard_cfg)
-        if fit is None or not fit.success or why:
-            self.model, self.seeded_prior = old_model, old_seed  # stay: the switch did not fit
-            self._log_check(t_now, results, f"{what} {comp.effect}: not switched ({why or 'the fit failed'})")
+            why = None if fit.success else f"the fit did not converge: {fit.message}"
+            why = why or implausible(target, fit.theta_u, self.guard_cfg)
+        except (InputError, np.linalg.LinAlgError) as exc:
+            why = str(exc)
+        finally:
+            if fit is None or why:
+                self.model, self.seeded_prior = old_model, old_seed  # stay: the switch did not fit
+        if fit is None or why:
+            self._log_check(t_now, results, f"{what} {comp.effect}: not switched ({why})")
             return None
         self._log_check(t_now, results, f"{what} {comp.effect}")
         added = [x for x in self.selection.get("added", []) if x in target.effects]
@@ -480,15 +512,17 @@ class OnlineCalibrator:
         self.selection["added"] = added
         fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}
         self._fit_cfg_now = cfg
-        message = (f"model {old_model.name} -> {target.name}: {comp.effect} {what} (held-out z {comp.heldout_z:.1f}, "
-                   f"RMS {comp.heldout_rms_small_mg:.3f} -> {comp.heldout_rms_large_mg:.3f} mg on "
-                   f"{comp.n_heldout} cells; effect terms chi2 {comp.wald_chi2:.1f} on {comp.wald_dof})")
-        decision = GuardDecision(True, None, message, comp.heldout_rms_large_mg, comp.heldout_rms_small_mg)
+        record = change_record(comp, what, old_model.name, target.name)
+        message = (f"model {old_model.name} -> {target.name}: {comp.effect} {what} (held-out RMS "
+                   f"{record['heldout_rms_mg_before']} -> {record['heldout_rms_mg_after']} mg on {comp.n_heldout} "
+                   f"cells, z {comp.heldout_z:.1f} for the larger model; effect terms chi2 {comp.wald_chi2:.1f} "
+                   f"on {comp.wald_dof})")
+        decision = GuardDecision(True, None, message, record["heldout_rms_mg_after"], record["heldout_rms_mg_before"])
         cal = self._describe(fit, t_now, int(usable.sum()), decision)
-        cal["model_change"] = dict(comp.to_dict(), change=what, from_model=old_model.name, to_model=target.name)
+        cal["model_change"] = record
         event = self._publish(t_now, fit, cal, decision)
         event["mode"] = self.last_refit["mode"] = "model_switch"
-        event["model_change"] = self.last_refit["model_change"] = cal["model_change"]
+        event["model_change"] = self.last_refit["model_change"] = record
         return event
 
     def _guard(self, fit: FitResult, data: PoseData, usable: np.ndarray, prior: Prior) -> GuardDecision:
@@ -709,7 +743,7 @@ class OnlineCalibrator:
         obj.store = PoseStore.from_json(d["store"])
         obj.seeded_prior = d.get("seeded_prior")
         obj.windows_since_refit = d["windows_since_refit"]
-        obj.selection = d.get("selection") or {"last_check_t_s": None, "added": [], "checks": []}
+        obj.selection = d.get("selection") or {"last_check_t_s": None, "added": [], "checks": [], "n_checks": 0}
         return obj
 
 

@@ -116,6 +116,11 @@ class ErrorModel:
 
     # ------------------------------------------------------------------ basics
     @property
+    def uses_temperature(self) -> bool:
+        """Whether the model needs a temperature (degC) for every pose."""
+        return any(e.startswith("temperature") for e in self.effects)
+
+    @property
     def n_params(self) -> int:
         """Number of parameters."""
         return len(self.param_names)

@@ -271,6 +271,7 @@ def replay(
         "truth": {"params": truth.params(), "effects": truth.model_params()},
         "soaks": soak_info,
         "model_final": cal.model.name,
+        "selection_checks": int(cal.selection.get("n_checks", 0)),
         "model_switches": [dict(r["model_change"], day=r["day"]) for r in refits if r.get("model_change")],
         "effect_summary": effect_summary(refits, truth.model_params()),
         "final": None if final is None else {k: final[k] for k in ("params", "std", "status", "version", "undetermined")},

@@ -19,7 +19,7 @@ both hold:
   the squared (clipped) norm residuals give a z-score of the gain, which must reach
   ``min_heldout_z``, and the held-out RMS must drop by ``min_gain_rel``.
 
-The best supported candidate (largest relative held-out gain) is switched in: the calibrator
+The best supported candidate (largest relative held-out gain) is switched in. The calibrator
 publishes the extended fit as a new version whose ``model_change`` says from what, to
 what, why, and the gain. An effect that selection added is tested the other way round
 at every later check, and dropped (a version again) when it no longer pays: its terms
@@ -99,7 +99,7 @@ class Comparison:
         def num(x: float, nd: int):
             return None if not np.isfinite(x) else round(float(x), nd)
 
-        return {"effect": self.effect, "from": self.small, "to": self.large, "heldout_z": num(self.heldout_z, 3),
+        return {"effect": self.effect, "small": self.small, "large": self.large, "heldout_z": num(self.heldout_z, 3),
                 "heldout_rms_mg_before": num(self.heldout_rms_small_mg, 4),
                 "heldout_rms_mg_after": num(self.heldout_rms_large_mg, 4),
                 "heldout_gain_rel": num(self.gain_rel, 4), "n_heldout_cells": self.n_heldout,
@@ -133,6 +133,7 @@ def applicable(effect: str, data: PoseData, cfg: SelectionConfig) -> str | None:
 
 
 def _clipped(model: ErrorModel, theta: np.ndarray, data: PoseData, clip_g: float) -> np.ndarray:
+    """Norm residuals (g, shape (n,)) clipped at ``clip_g``: one wild cell cannot decide."""
     r = model.residuals(theta, data.mean, data.temp_c, data.t_s)
     return np.clip(r, -clip_g, clip_g)
 
@@ -143,7 +144,8 @@ def compare(small: ErrorModel, large: ErrorModel, data: PoseData, folds: np.ndar
             clusters: np.ndarray | None = None, cv_only_if=None) -> Comparison:
     """Test ``large`` (``small`` plus one effect) against ``small`` on the cells ``data``.
 
-    ``folds`` (n,) int: the held-out fold of each cell. ``cv_small``: the small model's
+    ``folds`` (n,) int: the held-out fold of each cell. ``clusters`` (n,): the direction
+    cell of each (covariances and the held-out z are cluster-robust). ``cv_small``: the small model's
     held-out clipped residuals per fold (g), shared by candidates on the same cells
     (filled in when given empty). ``cv_only_if(wald_chi2, dof) -> bool``: run the
     cross-validation only when this says the Wald test leaves the question open.
@@ -186,15 +188,45 @@ def compare(small: ErrorModel, large: ErrorModel, data: PoseData, folds: np.ndar
     ok = np.isfinite(res_s) & np.isfinite(res_l)
     n = int(ok.sum())
     out.n_heldout = n
-    if n < 8:
-        out.heldout_z = 0.0
+    if n < 8:  # no held-out evidence: neither an add nor a drop may follow (z stays NaN)
+        out.notes.append(f"{n} held-out cells: no comparison")
         return out
     d = res_s[ok] ** 2 - res_l[ok] ** 2
-    sd = float(np.std(d, ddof=1))
-    out.heldout_z = float(np.mean(d) / (sd / np.sqrt(n))) if sd > 0 else 0.0
+    out.heldout_z = paired_z(d, None if clusters is None else np.asarray(clusters)[ok])
     out.heldout_rms_small_mg = float(np.sqrt(np.mean(res_s[ok] ** 2)) * 1e3)
     out.heldout_rms_large_mg = float(np.sqrt(np.mean(res_l[ok] ** 2)) * 1e3)
     return out
+
+
+def paired_z(d: np.ndarray, clusters: np.ndarray | None = None) -> float:
+    """z-score of the mean of paired differences ``d`` (n,). With ``clusters`` (n,) labels
+    (the direction cell of each pose cell: its time blocks share their errors), the standard
+    error is the cluster-robust one, from the clusters' sums about the mean."""
+    n = len(d)
+    mean = float(np.mean(d))
+    if clusters is None:
+        se = float(np.std(d, ddof=1)) / np.sqrt(n)
+    else:
+        _, inv = np.unique(clusters, return_inverse=True)
+        sums = np.bincount(inv, weights=d - mean)
+        k = len(sums)
+        se = float(np.sqrt(np.sum(sums**2) * k / max(k - 1, 1))) / n
+    return mean / se if se > 0 else 0.0
+
+
+def change_record(c: Comparison, change: str, from_model: str, to_model: str) -> dict:
+    """The ``model_change`` of a published switch, oriented along the change: held-out RMS
+    (mg) of the model before and of the model after, whichever of the two is larger."""
+    before, after = ((c.heldout_rms_small_mg, c.heldout_rms_large_mg) if change == "added"
+                     else (c.heldout_rms_large_mg, c.heldout_rms_small_mg))
+
+    def num(x: float, nd: int):
+        return None if not np.isfinite(x) else round(float(x), nd)
+
+    return {"change": change, "effect": c.effect, "from_model": from_model, "to_model": to_model,
+            "heldout_rms_mg_before": num(before, 4), "heldout_rms_mg_after": num(after, 4),
+            "heldout_z_larger_model": num(c.heldout_z, 3), "n_heldout_cells": c.n_heldout,
+            "wald_chi2": round(c.wald_chi2, 3), "wald_dof": c.wald_dof}
 
 
 def wald_significant(cfg: SelectionConfig):

@@ -320,7 +320,8 @@ def soak_report(t_s: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray, temp_c:
     is allowed, or the two correlate beyond 0.95.
     """
     if temp_c is None or not np.any(np.isfinite(np.asarray(temp_c, float))):
-        return {"found": 0, "soaks": [], "combined": None, "answer": "no temperature: soaks cannot be looked for"}
+        return {"found": 0, "soaks": [], "combined": None, "answer": "no temperature: soaks cannot be looked for",
+                "combined_with_time_drift": None, "time_drift_confounded": 0}
     order = np.argsort(t_s, kind="stable")
     t = np.asarray(t_s, float)[order]
     m = np.asarray(mean_g, float)[order]

@@ -81,7 +81,12 @@ class CalibratorFactory:
         return self.cls(config=self.config, model=self.model)
 
     def restore(self, state_json: str) -> Calibrator:
-        return self.cls.from_json(state_json)
+        """A calibrator from its saved state. The service's current ``[selection]`` settings
+        replace the saved ones (an operator who turns model selection off means every device)."""
+        cal = self.cls.from_json(state_json)
+        if self.config is not None and hasattr(cal, "set_selection"):
+            cal.set_selection((self.config or {}).get("selection"))
+        return cal
 
 
 def jsonable(obj: Any) -> Any:

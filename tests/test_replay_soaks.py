@@ -34,6 +34,7 @@ def test_soak_windows_found_in_the_replayed_windows_are_gone():
     cfg = load_config(None)
     out = replay(days=1.0, refit_every_days=0, seed=5, config=cfg, effects=("temperature_bias",), model=MODEL,
                  soaks=False)
+    assert out["soaks"]["n_soaks"] > 0
     assert out["soaks"]["n_windows"] >= out["soaks"]["n_soaks"] * 5
 
 

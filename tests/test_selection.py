@@ -34,7 +34,7 @@ def test_a_temperature_effect_is_switched_in_and_published_with_its_reason(seed)
     assert out["model_final"] == "affine9+temperature_bias", out["model_switches"]
     sw = out["model_switches"][0]
     assert sw["change"] == "added" and sw["effect"] == "temperature_bias"
-    assert sw["heldout_z"] >= 3.0 and sw["heldout_rms_mg_after"] < sw["heldout_rms_mg_before"]
+    assert sw["heldout_z_larger_model"] >= 3.0 and sw["heldout_rms_mg_after"] < sw["heldout_rms_mg_before"]
     row = next(r for r in out["refits"] if r.get("model_change"))
     assert row["published"] and row["mode"] == "model_switch"
     # after the switch the effect's terms are estimated and honest
@@ -45,6 +45,7 @@ def test_a_temperature_effect_is_switched_in_and_published_with_its_reason(seed)
 @pytest.mark.parametrize("seed", [11, 12, 13])
 def test_no_switch_on_effect_free_devices(seed):
     out = replay(days=14, seed=seed, config=load_config(None), effects=())
+    assert out["selection_checks"] >= 3  # the question was asked
     assert out["model_switches"] == [] and out["model_final"] == "affine9"
 
 
@@ -84,6 +85,9 @@ def test_an_effect_that_stops_paying_is_dropped():
     assert switch, "the unpaid effect was kept"
     change = switch[0]["calibration"]["model_change"]
     assert change["change"] == "dropped" and change["to_model"] == "affine9"
+    assert change["from_model"] == "affine9+temperature_bias"
+    # oriented along the change: "after" is the model now served
+    assert switch[0]["calibration"]["heldout_rms_mg"] == change["heldout_rms_mg_after"]
     assert cal.model.name == "affine9" and cal.selection["added"] == []
 
 
@@ -91,8 +95,42 @@ def test_an_effect_the_operator_chose_is_never_dropped():
     cfg, _, poses = _poses(5, 4.0, ())
     cal = OnlineCalibrator(cfg, "affine9+temperature_bias")  # configured, not added by selection
     events = cal.feed_poses(*poses)
+    assert cal.selection["n_checks"] >= 2
     assert not [e for e in events if e.get("mode") == "model_switch"]
     assert cal.model.name == "affine9+temperature_bias"
+
+
+@pytest.mark.parametrize("effects", [("temperature_bias",), ()])
+def test_a_restored_calibrator_decides_as_the_one_that_never_stopped(effects):
+    """The checks depend on the pose store and the published model only, not on what an
+    earlier refit left in memory: a service restores devices from their state all the time."""
+    cfg, _, poses = _poses(6, 4.0, effects)
+    k = len(poses[0])
+    halves = [tuple(a[: k // 2] for a in poses), tuple(a[k // 2:] for a in poses)]
+    straight = OnlineCalibrator(cfg, "affine9")
+    ev1 = straight.feed_poses(*halves[0]) + straight.feed_poses(*halves[1])
+    first = OnlineCalibrator(cfg, "affine9")
+    ev2 = first.feed_poses(*halves[0])
+    ev2 += OnlineCalibrator.from_json(first.to_json()).feed_poses(*halves[1])
+
+    def key(e):
+        return (round(e["t_s"], 3), e["published"], e["reason"], e.get("mode"),
+                (e.get("model_change") or {}).get("to_model"))
+
+    assert [key(e) for e in ev1] == [key(e) for e in ev2]
+    assert straight.selection["n_checks"] >= 2
+
+
+def test_a_time_drift_on_an_epoch_clock_is_referred_to_the_first_cell():
+    """With t_s in Unix seconds a drift referred to t = 0 extrapolates decades: the
+    candidate is referred to the first cell's time instead, and the switch happens."""
+    cfg, _, poses = _poses(2, 6.0, ("time_drift_bias",))
+    epoch = 1.7e9
+    cal = OnlineCalibrator(cfg, "affine9")
+    events = cal.feed_poses(poses[0], poses[1], poses[2], poses[3] + epoch, poses[4])
+    switched = [e for e in events if e.get("mode") == "model_switch"]
+    assert switched and cal.model.name.endswith("time_drift_bias"), cal.selection["checks"][-1]
+    assert cal.model.t_ref_s >= epoch
 
 
 def test_selection_can_be_switched_off():

@@ -58,7 +58,10 @@ def add_arguments(parser) -> None:
                      help="thermal soaks (still windows in one orientation while the temperature changes): keep "
                           "them (default), drop them, or run both and compare what the model's temperature terms "
                           "gain (poses level)")
-    parser.add_argument("--model", default="affine9", help="the calibrator's model")
+    parser.add_argument("--model", default="affine9",
+                        help="the calibrator's model to start from (online model selection may change it)")
+    parser.add_argument("--fixed-model", action="store_true",
+                        help="keep --model (no online model selection: [selection] enabled = false)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
@@ -87,6 +90,8 @@ def run(args) -> int:
     if args.soaks != "with" and args.level != "poses":
         raise InputError("--soaks without|both works at --level poses (the detector's windows are not filtered)")
     cfg = load_config(args.config)
+    if args.fixed_model or args.soaks == "both":  # --soaks both compares the same model's terms
+        cfg.setdefault("selection", {})["enabled"] = False
     kw = dict(days=args.days, refit_every_days=args.refit_every_days, config=cfg, effects=effects,
               model=args.model, level=args.level, random_init=not args.no_random_init)
     progress = not args.no_progress and (sys.stderr.isatty() or args.devices > 1)
@@ -141,7 +146,7 @@ def run(args) -> int:
               f"{row['tilt_error_deg']:9.3f} {row['n_poses']:6d} {fit}  {outcome}")
     for sw in out["model_switches"]:
         print(f"model switch on day {sw['day']:.2f}: {sw['from_model']} -> {sw['to_model']} ({sw['change']} "
-              f"{sw['effect']}: held-out z {sw['heldout_z']}, RMS {sw['heldout_rms_mg_before']} -> "
+              f"{sw['effect']}: held-out z {sw['heldout_z_larger_model']}, RMS {sw['heldout_rms_mg_before']} -> "
               f"{sw['heldout_rms_mg_after']} mg, effect terms chi2 {sw['wald_chi2']} on {sw['wald_dof']})")
     for name, e in out["effect_summary"].items():
         day = f"determined on day {e['first_determined_day']:.2f}" if e["first_determined_day"] is not None \
@@ -175,7 +180,8 @@ def _term(name: str, value: float) -> str:
 
 def run_soak_comparison(args, kw: dict, progress: bool) -> int:
     """``--soaks both``: every device replayed with and without its soaks; per effect term, the
-    day it is determined and its final error, side by side."""
+    day it is determined and its final error, side by side (model selection off: the same
+    model's terms are compared)."""
     from selfcal.replay import replay_fleet
 
     t0 = time.perf_counter()
@@ -243,6 +249,8 @@ def run_recording(args) -> int:
     rec = args.recording
     ErrorModel(args.model)  # every check before the work, none after it
     cfg = load_config(args.config)
+    if args.fixed_model:
+        cfg.setdefault("selection", {})["enabled"] = False
     if Path(rec).is_dir():
         raise InputError(f"{rec}: is a directory, not a recording file")
     if not Path(rec).exists():
