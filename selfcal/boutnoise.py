@@ -167,7 +167,7 @@ class BoutNoise:
     sigma_ar_g: float = 0.0
     tau_s: float = float("nan")
     sigma_white_g: float = 0.0
-    excess_var_g2: float = 0.0  # C0: mean(r^2 - s^2), before clipping at 0
+    excess_var_g2: float = 0.0  # C0: mean(r^2 - s^2) of the residuals used (no correction, not clipped)
     noise_var_g2: float = 0.0  # mean measured noise variance s^2
     n_bouts: int = 0
     n_multi_bouts: int = 0
@@ -179,6 +179,7 @@ class BoutNoise:
     independence_dof: int = 0
     independence_p: float = float("nan")
     unrestricted: dict = field(default_factory=dict)
+    projection_deltas: dict = field(default_factory=dict)
     why: str = ""
     std: dict = field(default_factory=dict)
     lags: dict = field(default_factory=dict)
@@ -261,7 +262,7 @@ class BoutNoise:
         def num(x):
             return None if x is None or not np.isfinite(x) else float(x)
 
-        total = self.noise_var_g2 + max(self.excess_var_g2, 0.0)
+        total = self.noise_var_g2 + self.sigma_white_g**2 + self.correlated_var_g2  # the model's variance
         std = {}
         for k, v in self.std.items():
             if k.endswith("_g"):
@@ -399,6 +400,31 @@ def _fit_variogram(gbar: np.ndarray, w: np.ndarray, dt: np.ndarray, c0: np.ndarr
     return b1, b2, np.where(b2 > 0, taus[k], np.nan)
 
 
+def _projection_deltas(q: np.ndarray, sigma_g: np.ndarray, s2: np.ndarray, bouts: Bouts,
+                       ar_model: BoutNoise) -> dict[str, float]:
+    """``delta_M = 2 tr(P M) - tr(P M P')`` (same units as ``M``'s scale: ``S`` in g², the
+    others per unit variance) for the weighted projector ``P = D q q' D^-1`` (``D = diag(sigma_g)``)
+    and ``M`` = ``S`` (diag of the measured noise ``s2``), ``Z`` (bout indicator ``Z Z'``),
+    ``R`` (the AR(1) correlation of ``ar_model``) and ``I``."""
+    dq = sigma_g[:, None] * q
+    diq = q / sigma_g[:, None]
+    gram = dq.T @ dq
+
+    def delta(apply):
+        return float(2.0 * np.sum(diq * apply(dq)) - np.sum((diq.T @ apply(diq)) * gram))
+
+    def bout_sums(x):
+        sums = np.zeros((bouts.n_bouts, x.shape[1]))
+        np.add.at(sums, bouts.label, x)
+        return sums[bouts.label]
+
+    out = {"S": delta(lambda x: s2[:, None] * x), "Z": delta(bout_sums), "I": delta(lambda x: x), "R": 0.0}
+    if ar_model.sigma_ar_g > 0:
+        unit = BoutNoise(sigma_ar_g=1.0, tau_s=ar_model.tau_s)
+        out["R"] = delta(lambda x: unit.cov_matvec(bouts, np.zeros(len(x)), x))
+    return out
+
+
 def estimate_bout_noise(
     res_g: np.ndarray,
     noise_g: np.ndarray,
@@ -406,6 +432,7 @@ def estimate_bout_noise(
     max_lag_s: float = 900.0,
     n_boot: int = 200,
     seed: int = 0,
+    projection: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> BoutNoise:
     """Estimate the correlated-noise model from the base fit's residuals (method of moments).
 
@@ -417,7 +444,12 @@ def estimate_bout_noise(
       parts are estimated from within-bout changes only (pair-weighted NNLS per ``tau`` on
       a grid up to twice the longest lag, best ``tau`` kept, subject to
       ``sigma_white^2 + sigma_ar^2 <= C0``);
-    * ``sigma_bout^2 = C0 - sigma_white^2 - sigma_ar^2``.
+    * ``sigma_bout^2 = C0 - sigma_white^2 - sigma_ar^2``, corrected for what the fit took:
+      residuals projected off ``k`` columns keep ``E[r'r] = sum_M theta_M (tr M - delta_M)``
+      with ``delta_M = 2 tr(P M) - tr(P M P')`` for each covariance term ``M`` (``P`` the
+      weighted projector). Columns that hardly vary within a bout remove about ``k / K``
+      of the bout variance over ``K`` bouts (10 % with 21 columns and 200 bouts), which the
+      correction puts back.
 
     An AR(1) whose ``tau`` exceeds the bouts' durations cannot be told from a bout error:
     the grid stops at twice the longest lag, and a flat variogram gives ``sigma_ar = 0``.
@@ -436,6 +468,9 @@ def estimate_bout_noise(
     max_lag_s : longest lag between two windows of a bout used, s
     n_boot : bootstrap replicates over bouts for the sds (0: none)
     seed : seed of the bootstrap
+    projection : ``(q, sigma_g)`` when ``res_g`` are residuals projected off some columns:
+        ``q`` (n, k) an orthonormal basis of the columns whitened by ``sigma_g`` (n,) (g),
+        the weights of the projection. None: no correction.
 
     Returns
     -------
@@ -463,14 +498,25 @@ def estimate_bout_noise(
     keep = npair_bin > 0
     taus = np.geomspace(max(dt_bin[keep].min(), 1e-3) / 3.0, 2.0 * dt_bin[keep].max(), 40)
 
-    def fit(weights):  # weights: (R, n_bouts) -> white, ar, tau, bout (each (R,)) and C0 (R,)
-        c0r = (weights @ excess) / np.maximum(weights @ nwin, 1e-300)
+    def fit(weights):  # weights: (R, n_bouts) -> white, ar, tau, C0, windows (each (R,))
+        nw = weights @ nwin
+        c0r = (weights @ excess) / np.maximum(nw, 1e-300)
         cnt = weights @ counts
         gbar = np.where(cnt > 0, (weights @ sums) / np.maximum(cnt, 1e-300), 0.0)
         white, ar, tau = _fit_variogram(gbar, cnt, dt_bin, c0r, taus)
-        return white, ar, tau, np.maximum(c0r - white - ar, 0.0), c0r
+        return white, ar, tau, c0r, nw
 
-    white, ar, tau, bout, _ = fit(np.ones((1, bouts.n_bouts)))
+    def bout_var(c0r, white, ar, nw, d):  # the bout part: the rest of C0, corrected for the projection
+        num = nw * c0r + d["S"] - ar * (nw - d["R"]) - white * (nw - d["I"])
+        return np.maximum(num / np.maximum(nw - d["Z"], 1.0), 0.0)
+
+    white, ar, tau, c0r, nw = fit(np.ones((1, bouts.n_bouts)))
+    deltas = {"S": 0.0, "Z": 0.0, "R": 0.0, "I": 0.0}
+    if projection is not None:
+        ar_model = BoutNoise(sigma_ar_g=float(np.sqrt(ar[0])), tau_s=float(tau[0]))
+        deltas = _projection_deltas(projection[0], projection[1], s2, bouts, ar_model)
+    out.projection_deltas = deltas
+    bout = bout_var(c0r, white, ar, nw, deltas)
     out.sigma_bout_g = float(np.sqrt(bout[0]))
     out.sigma_ar_g = float(np.sqrt(ar[0]))
     out.tau_s = float(tau[0])
@@ -491,7 +537,8 @@ def estimate_bout_noise(
     if n_boot > 1:
         rng = np.random.default_rng(seed)
         wts = rng.multinomial(bouts.n_bouts, np.full(bouts.n_bouts, 1.0 / bouts.n_bouts), size=n_boot).astype(float)
-        bw, ba, btau, bb, _ = fit(wts)
+        bw, ba, btau, bc0, bnw = fit(wts)
+        bb = bout_var(bc0, bw, ba, bnw, deltas)
         out.std = {"sigma_bout_g": float(np.std(np.sqrt(bb), ddof=1)),
                    "sigma_ar_g": float(np.std(np.sqrt(ba), ddof=1)),
                    "sigma_white_g": float(np.std(np.sqrt(bw), ddof=1)),

@@ -262,8 +262,9 @@ def _not_testable(effect: str, temp_c: np.ndarray | None, t_s: np.ndarray, cfg: 
     return None
 
 
-def _noise_residuals(base_fit, data: _Data, effects: list[str]) -> np.ndarray:
-    """Base-fit residuals (g, (n,)) with every testable candidate effect's pattern removed.
+def _noise_residuals(base_fit, data: _Data, effects: list[str]) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Base-fit residuals (g, (n,)) with every testable candidate effect's pattern removed,
+    and the projection used, ``(q (n, k) orthonormal whitened columns, sigma_g (n,))``.
 
     The candidates' Jacobian columns at the base fit (zero effect), with the base model's,
     are projected out in the fit's weighted metric. The noise model is estimated from
@@ -276,10 +277,10 @@ def _noise_residuals(base_fit, data: _Data, effects: list[str]) -> np.ndarray:
         ext = base_fit.model.with_effects((eff,))
         theta = ext.extend_theta(base_fit.theta_u, base_fit.model)
         cols.append(ext.residual_jac(theta, data.u, data.temp_c, data.t_s)[1][:, ext.index(eff)])
-    jw = np.column_stack(cols) / sigma[:, None]
+    u, sv, _ = np.linalg.svd(np.column_stack(cols) / sigma[:, None], full_matrices=False)
+    q = u[:, sv > sv[0] * 1e-10]
     rw = base_fit.residuals_g / sigma
-    coef, *_ = np.linalg.lstsq(jw, rw, rcond=None)
-    return (rw - jw @ coef) * sigma
+    return (rw - q @ (q.T @ rw)) * sigma, (q, sigma)
 
 
 def _correlated_covariances(model: ErrorModel, base_fit, data: _Data, noise: BoutNoise | None, bouts: Bouts,
@@ -421,8 +422,9 @@ def diagnose_poses(
     if cfg.noise_model == "bouts":
         found = find_bouts(t_s, gdir, cfg.bout_gap_s, cfg.bout_angle_deg)
         testable = [e for e in EFFECTS if _not_testable(e, temp, t_s, cfg) is None]
-        noise_model = estimate_bout_noise(_noise_residuals(base_fit, data, testable), noise, found,
-                                          cfg.noise_max_lag_s, cfg.noise_boot, cfg.seed)
+        res_noise, projection = _noise_residuals(base_fit, data, testable)
+        noise_model = estimate_bout_noise(res_noise, noise, found, cfg.noise_max_lag_s, cfg.noise_boot, cfg.seed,
+                                          projection)
         bout_labels = found.label
         if noise_model.correlated_var_g2 > 0:
             # correlated windows: bouts are the units of the simulation, the tests and the CV folds;

@@ -99,3 +99,22 @@ def test_bout_and_ar_terms_are_told_apart(seed):
     assert abs(nm["correlated_var_mg2"] - 4.5) <= 3 * nm["std"]["correlated_var_mg2"]
     assert abs(nm["sigma_bout_mg"] - 1.5) <= 0.4 and abs(nm["sigma_ar_mg"] - 1.5) <= 0.4
     assert 100.0 <= nm["tau_s"] <= 400.0
+
+
+def test_projection_deltas_match_the_dense_traces():
+    """delta_M = 2 tr(PM) - tr(PMP') of the weighted projector, for each covariance term."""
+    from selfcal.boutnoise import _projection_deltas
+
+    rng = np.random.default_rng(4)
+    n = 60
+    t = np.cumsum(rng.choice([10.0, 10.0, 100.0], n))
+    bouts = find_bouts(t, np.tile([0.0, 0.0, 1.0], (n, 1)), gap_s=30.0)
+    sigma, s2 = rng.uniform(1, 2, n), rng.uniform(0.1, 0.5, n)
+    jac = rng.normal(size=(n, 4))
+    q = np.linalg.svd(jac / sigma[:, None], full_matrices=False)[0]
+    proj = np.diag(sigma) @ q @ q.T @ np.diag(1 / sigma)
+    deltas = _projection_deltas(q, sigma, s2, bouts, BoutNoise(sigma_ar_g=1.0, tau_s=40.0))
+    same = (bouts.label[:, None] == bouts.label[None, :]).astype(float)
+    ar = same * np.exp(-np.abs(t[:, None] - t[None, :]) / 40.0)
+    for key, mat in (("S", np.diag(s2)), ("Z", same), ("R", ar), ("I", np.eye(n))):
+        assert deltas[key] == pytest.approx(2 * np.trace(proj @ mat) - np.trace(proj @ mat @ proj.T), rel=1e-10)
