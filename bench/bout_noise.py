@@ -11,6 +11,7 @@
    a 2 mg per-bout error and a 1 mg AR(1) term: false alarms and named rate under both
    noise models (95 % Wilson intervals).
 5. Effect-free insole sets (tests/effectgen.py, windows far apart): false alarms under both.
+6. The test of independence within bouts on independent residuals: its rejection rate.
 
 Usage: ``python bench/bout_noise.py [--seeds N] [--skip-record]``.
 """
@@ -29,7 +30,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 from boutgen import bout_case  # noqa: E402
 from effectgen import hidden_effect_case  # noqa: E402
 
+from selfcal.boutnoise import estimate_bout_noise, find_bouts  # noqa: E402
 from selfcal.diagnosis import diagnose_poses, diagnose_recording  # noqa: E402
+from selfcal.fit import FitConfig, pose_sigma  # noqa: E402
 
 RECORD = ROOT / "data" / "ggir-wrist-84h" / "poses.csv"
 
@@ -85,6 +88,31 @@ def record_section(n_sim: int) -> None:
                   f"gain (time, pose) {_fmt(e.get('gain_time'), 2)}, {_fmt(e.get('gain_pose'), 2)}  "
                   f"{'SELECTED' if e['selected'] else ('supported' if e.get('supported') else '-')}{tb}")
         print()
+
+
+def residual_section() -> None:
+    print("## 1b. 84-h record: correlation of consecutive base-fit residuals, by gap and by turn\n")
+    rep, poses = diagnose_recording(RECORD, {"diagnose": {"n_sim": 2}}, keep_arrays=True)
+    a = rep["_arrays"]
+    o = np.argsort(a["t_s"])
+    t, r, g = a["t_s"][o], a["res_base_mg"][o], a["gdir"][o]
+    dt = np.diff(t)
+    turn = np.degrees(np.arccos(np.clip(np.sum(g[1:] * g[:-1], axis=1), -1, 1)))
+    for what, x, bins in (("gap (s)", dt, [(10, 10), (11, 30), (31, 60), (61, 300), (301, 3600), (3601, 1e9)]),
+                          ("turn (deg), gap <= 60 s", turn, [(0, 1), (1, 3), (3, 5), (5, 10), (10, 30), (30, 180)])):
+        cells = []
+        for lo, hi in bins:
+            m = (x >= lo) & (x <= hi) if what.startswith("gap") else (x >= lo) & (x < hi) & (dt <= 60)
+            if m.sum() > 5:
+                cells.append(f"{lo:g}-{hi:g}: {np.corrcoef(r[:-1][m], r[1:][m])[0, 1]:.3f} ({m.sum()})")
+        print(f"  {what}: " + "; ".join(cells))
+    bouts = find_bouts(a["t_s"], a["gdir"], 60.0, 5.0)
+    same = np.diff(bouts.label_sorted) == 0
+    print(f"  consecutive pairs inside one bout (gap <= 60 s, turn <= 5 deg): {same.mean():.3f}")
+    noise = pose_sigma(poses["mean"], poses["sd"], poses["count"], FitConfig(sigma_floor_g=0.0))
+    t0 = time.perf_counter()
+    estimate_bout_noise(a["res_base_mg"] * 1e-3, noise, bouts)
+    print(f"  estimate_bout_noise with 200 bootstrap resamples: {1e3 * (time.perf_counter() - t0):.0f} ms\n")
 
 
 def rule_section(n_sim: int) -> None:
@@ -173,6 +201,23 @@ def effectgen_section(seeds: int) -> None:
     print()
 
 
+def independence_section(reps: int = 1000) -> None:
+    print("## 6. Test of independence within bouts, on independent residuals\n")
+    poses, _ = bout_case(np.random.default_rng(1))
+    g = poses["mean"] / np.linalg.norm(poses["mean"], axis=1, keepdims=True)
+    bouts = find_bouts(poses["t_s"], g)
+    rng = np.random.default_rng(0)
+    n = len(poses["t_s"])
+    p = []
+    for _ in range(reps):
+        s = rng.uniform(0.2, 0.6, n) * 1e-3  # measured noise per window, g
+        r = rng.normal(size=n) * np.sqrt(s**2 + 0.3e-3**2)  # plus 0.3 mg white
+        p.append(estimate_bout_noise(r, s, bouts, n_boot=0).independence_p)
+    p = np.array(p)
+    print(f"{reps} draws on {bouts.n_bouts} bouts ({n} windows): p < 1e-3 in {np.sum(p < 1e-3)}, "
+          f"p < 0.05 in {np.mean(p < 0.05):.1%}, p < 0.5 in {np.mean(p < 0.5):.1%}\n")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20, help="seeds per synthetic cell")
@@ -181,10 +226,12 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if not args.skip_record:
         record_section(args.n_sim)
+        residual_section()
         rule_section(max(args.n_sim // 2, 2))
     recovery_section(args.seeds)
     calls_section(args.seeds)
     effectgen_section(args.seeds)
+    independence_section()
     return 0
 
 
