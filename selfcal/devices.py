@@ -16,6 +16,7 @@ Peak memory is about 12 bytes per sample for acceleration and 4 for temperature 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -42,14 +43,65 @@ def _series(ts: dict, name: str):
 #: Axivity files are whole 512-byte sectors (a 1024-byte header, then data blocks).
 CWA_SECTOR_BYTES = 512
 
+#: GENEActiv ``.bin`` files are text: a 59-line header, then pages of 10 lines (9 page-header
+#: lines, then one line of hex data, 12 hex characters a sample, 300 samples a page).
+BIN_HEADER_LINES = 59
+BIN_PAGE_LINES = 10
+BIN_HEX_PER_SAMPLE = 12
+#: Longest line read while checking a ``.bin`` (a page's hex line is 3600 characters).
+_BIN_MAX_LINE = 1 << 16
+_HEX_LINE = re.compile(rb"[0-9A-Fa-f]+")
+
+
+def _check_bin_not_cut(path: Path, fmt: str) -> None:
+    """Refuse a GENEActiv ``.bin`` whose last page is cut (reads its first page and its tail only).
+
+    actfast 1.3 refuses a file cut inside the header or inside a page's 9 header lines,
+    but a cut inside the last page's hex line silently loses the rest of that page (it
+    decodes ``len // 12`` samples). The last line must be a hex line as long as the first
+    page's (every page holds the same number of samples). A file cut exactly at a page
+    boundary still reads as a shorter recording, as a ``.cwa`` cut at a sector boundary does.
+    """
+    with open(path, "rb") as fh:
+        if fh.read(4) != b"Devi":  # not actfast's GENEActiv magic ("Device Identity"): it says what it is
+            return
+        fh.seek(0)
+        for _ in range(BIN_HEADER_LINES + BIN_PAGE_LINES):
+            line = fh.readline(_BIN_MAX_LINE)
+            if not line:
+                return  # no whole first page: actfast refuses it or it holds no samples
+        first = line.strip()
+        if not _HEX_LINE.fullmatch(first):
+            return  # not the layout checked here: actfast decides
+        size = fh.seek(0, os.SEEK_END)
+        fh.seek(max(0, size - len(first) - 256))
+        last = fh.read().rstrip().rsplit(b"\n", 1)[-1].strip()
+    if not _HEX_LINE.fullmatch(last):
+        shown = last[:40].decode("ascii", "replace")
+        raise InputError(f"{path}: truncated {fmt} file: it ends inside a page header (last line {shown!r}); "
+                         "copy the file again")
+    if len(last) % BIN_HEX_PER_SAMPLE:
+        raise InputError(
+            f"{path}: truncated {fmt} file: the last page's data line has {len(last)} hex characters, not a "
+            f"whole number of {BIN_HEX_PER_SAMPLE}-character samples (the page is cut); copy the file again")
+    if len(last) != len(first):
+        raise InputError(
+            f"{path}: truncated {fmt} file: the last page's data line holds {len(last) // BIN_HEX_PER_SAMPLE} "
+            f"samples where the first page's holds {len(first) // BIN_HEX_PER_SAMPLE} (the page is cut); "
+            "copy the file again")
+
 
 def _check_not_cut(path: Path, fmt: str) -> None:
     """Refuse a file whose size shows it was cut (a copy or download that stopped).
 
     An Axivity ``.cwa`` is a whole number of 512-byte sectors; actfast silently drops a
     partial last sector, so a cut copy would otherwise calibrate as a shorter recording.
-    (A cut ``.gt3x`` is a broken zip archive, which actfast already refuses.)
+    A GENEActiv ``.bin`` whose last page is cut would lose that page's rest the same way
+    (:func:`_check_bin_not_cut`). (A cut ``.gt3x`` is a broken zip archive, which actfast
+    already refuses.)
     """
+    if path.suffix.lower() == ".bin":
+        _check_bin_not_cut(path, fmt)
     if path.suffix.lower() == ".cwa":
         with open(path, "rb") as fh:
             if fh.read(2) != b"MD":  # not an Axivity file at all (garbage, another format)

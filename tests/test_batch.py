@@ -24,7 +24,7 @@ def test_many_files_summary_and_error_rows(tmp_path, capsys, jobs):
     if jobs == 2:
         pytest.importorskip("actfast")
         files.append(DATA / "device-formats" / "axivity_ax3.cwa")  # real, but 36 s: refused
-        for real in ("axivity_ax3.cwa", "actigraph.gt3x"):  # truncated copies of real files: error rows
+        for real in ("axivity_ax3.cwa", "actigraph.gt3x", "geneactiv_synthetic.bin"):  # truncated copies: error rows
             raw = (DATA / "device-formats" / real).read_bytes()
             cut_copy = tmp_path / f"cut_{real}"
             cut_copy.write_bytes(raw[: len(raw) * 6 // 10 + 7])
@@ -43,6 +43,8 @@ def test_many_files_summary_and_error_rows(tmp_path, capsys, jobs):
     if jobs == 2:
         assert by["cut_axivity_ax3.cwa"]["status"] == "error" and "truncated" in by["cut_axivity_ax3.cwa"]["error"]
         assert by["cut_actigraph.gt3x"]["status"] == "error" and "cut_actigraph.gt3x" in by["cut_actigraph.gt3x"]["error"]
+        cut_bin = by["cut_geneactiv_synthetic.bin"]
+        assert cut_bin["status"] == "error" and "truncated" in cut_bin["error"]
     failed = sum(r["status"] in ("error", "uncalibrated") for r in rows)
     assert code == failed == len(files) - 1  # the exit code is the number of files that failed
     md = summary.with_suffix(".md").read_text()
