@@ -14,6 +14,7 @@ is a false one.
 
     python bench/model_selection.py                       # 20 + 20 with the effect, 50 clean
     python bench/model_selection.py --effects temperature_bias,temperature_scale --devices 5 --clean-devices 10
+    python bench/model_selection.py --schedule shipped --effects "" --clean-devices 50   # daily checks
 """
 
 from __future__ import annotations
@@ -41,9 +42,14 @@ def main(argv=None) -> int:
     ap.add_argument("--days", type=float, default=30.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--schedule", choices=("protocol", "shipped"), default="protocol",
+                    help="protocol: selfcal replay's default (a refit, and so at most one check, every 3 days); "
+                         "shipped: the calibrator's own scheduler (a check every day of data, as the service runs)")
     args = ap.parse_args(argv)
     cfg = load_config(None)
-    kw = dict(days=args.days, refit_every_days=3.0, config=cfg, workers=args.workers, progress=True)
+    kw = dict(days=args.days, refit_every_days=3.0 if args.schedule == "protocol" else 0.0, config=cfg,
+              workers=args.workers, progress=True)
+    print(f"schedule: {args.schedule}")
     for effect in [e for e in args.effects.split(",") if e]:
         t0 = time.perf_counter()
         sel = replay_fleet(args.devices, args.seed, effects=(effect,), model="affine9", **kw)
@@ -71,7 +77,9 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         clean = replay_fleet(args.clean_devices, args.seed + 1000, effects=(), model="affine9", **kw)
         switched = [r for r in clean if r["model_switches"]]
-        print(f"\n## no effect: {args.clean_devices} insoles x {args.days:g} days ({time.perf_counter() - t0:.0f} s)")
+        checks = [r["selection_checks"] for r in clean]
+        print(f"\n## no effect: {args.clean_devices} insoles x {args.days:g} days ({time.perf_counter() - t0:.0f} s), "
+              f"{sum(checks)} checks ({min(checks)}-{max(checks)} per device)")
         print(f"false switches: {len(switched)}/{args.clean_devices} devices"
               + "".join(f"\n  seed {r['seed']}: " + ", ".join(f"day {s['day']:.1f} {s['change']} {s['effect']} "
                                                             f"(z {s['heldout_z_larger_model']}, chi2 {s['wald_chi2']})"
