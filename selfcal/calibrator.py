@@ -97,16 +97,32 @@ class SchedulerConfig(BaseModel):
     publish_improve_factor: float = Field(
         1.25, gt=1, description="...or when the predicted sphere error shrinks by this factor"
     )
+    publish_max_shift_mg: float = Field(
+        0.5, ge=0, description="a calibrated version published because it is more certain (not because the data say the "
+                               "published one is wrong) may move the whole-sphere calibration by at most this, mg")
+    publish_final_chi2_quantile: float = Field(
+        0.99, gt=0, lt=1, description="at the end of a stream (flush), a change beyond this chi2 quantile is published")
+    publish_final_max_shift_mg: float = Field(
+        1000.0, ge=0, description="at the end of a stream the most certain fit is what the user keeps: the "
+                                  "bound on its whole-sphere shift, mg (1 g: none)")
+    publish_final_improve_factor: float = Field(
+        1.05, gt=1, description="...or one whose predicted sphere error shrank by this factor (and that moves the "
+                                "calibration by at most publish_max_shift_mg)")
     publish_min_interval_s: float = Field(
         1800.0, ge=0, description="at most one version per this much data time (a status change is always published), s"
     )
     cell_floor_g: float = Field(
-        1e-4, gt=0, description="least shared error of one pose cell (repeats in a cell do not average it down), g")
+        1e-4, gt=0, description="shared error of one pose cell (repeats in a cell do not average it down) until "
+                                "the residuals of enough cells measure it (variance components), g")
+    cell_floor_min_g: float = Field(
+        1e-5, gt=0, description="least cell floor the variance components may set, g")
+    cell_floor_max_g: float = Field(
+        1e-2, gt=0, description="largest cell floor the variance components may set, g")
     process_noise_bias_g_per_sqrt_day: float = Field(
-        5e-5, ge=0, description="random-walk sd of the offsets per sqrt(day): older cells weigh less, g"
+        0.0, ge=0, description="random-walk sd of the offsets per sqrt(day): older cells weigh less, g"
     )
     process_noise_scale_per_sqrt_day: float = Field(
-        2.5e-5, ge=0, description="random-walk sd of the scales per sqrt(day), relative"
+        0.0, ge=0, description="random-walk sd of the scales per sqrt(day), relative"
     )
 
     @classmethod
@@ -366,13 +382,17 @@ class OnlineCalibrator:
     def _fit_store(self, data: PoseData, usable: np.ndarray, prior: Prior, theta0) -> tuple:
         """The robust MAP fit of the cells, with the noise the data show; returns
         ``(fit, data, fit_cfg, cell_noise_factor)`` (data with the noise rescaled)."""
-        floor = self.sched_cfg.cell_floor_g
+        s = self.sched_cfg
+        floor = s.cell_floor_g
         cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor})
         clusters = self.store.clusters()[usable]
         fit = fit_poses(self.model, data, prior=prior, theta0_u=theta0, cfg=cfg, robust=True, clusters=clusters)
-        # the noise the data show: shared floor and cell noise scaled (never below the model)
-        c_floor, c_noise = variance_components(self.model, fit, data, floor, reject_z=self.fit_cfg.reject_z)
-        if c_floor > 1.0 or c_noise > 1.0:
+        # the noise the data show: the shared floor as the residuals measure it (between
+        # cell_floor_min_g and cell_floor_max_g), the cells' noise scaled (never below the model)
+        bounds = (((s.cell_floor_min_g / floor) ** 2, (s.cell_floor_max_g / floor) ** 2), (1.0, 10.0))
+        c_floor, c_noise = variance_components(self.model, fit, data, floor, bounds=bounds,
+                                               reject_z=self.fit_cfg.reject_z)
+        if c_floor != 1.0 or c_noise > 1.0:
             cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor * np.sqrt(c_floor)})
             data = PoseData(data.mean, None if data.sd is None else data.sd * np.sqrt(c_noise),
                             data.count, data.t_s, data.temp_c)
@@ -610,14 +630,24 @@ class OnlineCalibrator:
             d2 = float(d @ np.linalg.solve(fit.cov_u, d))
         except np.linalg.LinAlgError:
             d2 = np.inf
-        thr = float(_chi2_isf(self.model.n_params, 1.0 - (0.5 if final else s.publish_chi2_quantile)))
-        pred_cur = self.current["calibration"].get("predicted_sphere_rms_mg")
-        factor = 1.05 if final else s.publish_improve_factor
-        improved = pred_cur is None or cal["predicted_sphere_rms_mg"] * factor <= float(pred_cur)
-        if d2 > thr or improved:
+        thr = float(_chi2_isf(self.model.n_params, 1.0 - (s.publish_final_chi2_quantile if final
+                                                           else s.publish_chi2_quantile)))
+        if d2 > thr:  # the data say the published model is off
             return None
-        return (f"change chi2 {d2:.1f} <= {thr:.1f} and predicted sphere error {cal['predicted_sphere_rms_mg']:.3f} mg "
-                f"vs published {float(pred_cur):.3f} mg")
+        pred_cur = self.current["calibration"].get("predicted_sphere_rms_mg")
+        factor = s.publish_final_improve_factor if final else s.publish_improve_factor
+        improved = pred_cur is None or cal["predicted_sphere_rms_mg"] * factor <= float(pred_cur)
+        # more certain, but not significantly different: a calibrated model is replaced only
+        # if the new one moves it little over the whole sphere (shift = the published model's
+        # sphere error were the new one the truth), so that a calibrated version can never be
+        # worse than the one it replaces by more than that (triangle inequality of the sphere
+        # RMS). A provisional model is expected to move: it is replaced by any better one.
+        shift = predicted_sphere_rms_mg(self.model, fit.theta_u, np.outer(d, d), t_now) if np.all(np.isfinite(d)) else np.inf
+        max_shift = s.publish_final_max_shift_mg if final else s.publish_max_shift_mg
+        if improved and (cal["status"] != "calibrated" or shift <= max_shift):
+            return None
+        return (f"change chi2 {d2:.1f} <= {thr:.1f}; predicted sphere error {cal['predicted_sphere_rms_mg']:.3f} mg "
+                f"vs published {float(pred_cur):.3f} mg, whole-sphere shift {shift:.3f} mg")
 
     def _refuse(self, t_now, reason, message, fit=None, decision=None) -> dict:
         self.new_since_refit = 0  # wait for new poses before trying again

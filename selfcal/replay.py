@@ -447,7 +447,8 @@ def score_recording_run(run, path: str | Path, truth: dict | None = None, block_
     (the recording's unit); with a truth also ``true_mg`` and ``z`` (see
     :mod:`selfcal.scoring`). ``summary``: :func:`selfcal.scoring.run_figures` (over the
     truth's ``days``; the CRLB and the final target for a poses file, whose rows are the
-    still windows) and, with a truth, :func:`selfcal.scoring.consistency_figures`.
+    still windows, each with the noise model's variance: the recording does not hold the
+    simulator's true noise, which ``bench/consistency.py`` takes from the simulator) and, with a truth, :func:`selfcal.scoring.consistency_figures`.
     """
     from selfcal.errors import InputError
     from selfcal.pipeline import published_versions

@@ -191,6 +191,34 @@ def poses_file_information(path, model: ErrorModel, truth_u: np.ndarray,
     return info, n, last_t
 
 
+def efficient_reference(model_name: str, truth: dict, poses, t_end_s: float) -> dict:
+    """What an efficient estimator achieves on a simulation's still windows.
+
+    ``poses`` is the simulator's :class:`selfcal.sim.simulator.PoseTable` (the windows a
+    poses recording holds, with ``noise_var_g2``, the true variance of each window mean).
+    Returns ``crlb_mg``: the Cramér-Rao whole-sphere error of those windows with their true
+    noise and the datasheet prior; ``oracle_mg``: the true whole-sphere error of the MAP fit
+    (datasheet prior) weighted by that true noise, started at the truth; both at ``t_end_s``.
+    The oracle knows what no calibrator can (each window's true noise), so its error is the
+    floor an online estimator is measured against: even it exceeds ``2 x crlb_mg`` on a few
+    per cent of weeks (README).
+    """
+    from selfcal.fit import NoiseModel, PoseData, fit_poses
+
+    scorer = TruthScorer(truth, model_name)
+    model, truth_u = scorer.model, scorer.truth_u
+    t_s = np.asarray(poses.t_s, float) + 0.5 * np.asarray(poses.duration_s, float)
+    data = PoseData(poses.mean_g, np.sqrt(poses.noise_var_g2), np.ones(len(t_s)), t_s, poses.temp_c)
+    cfg = FitConfig(sigma_floor_g=0.0)
+    sigma = NoiseModel.from_poses(data.mean, data.sd, data.count, cfg, model, data.temp_c, t_s)(truth_u)[0]
+    _, jac = model.residual_jac(truth_u, data.mean, data.temp_c, t_s)
+    jw = jac / sigma[:, None]
+    prior = datasheet_prior(model, cfg)
+    crlb = predicted_sphere_rms_mg(model, truth_u, np.linalg.inv(jw.T @ jw + prior.precision()), t_end_s)
+    fit = fit_poses(model, data, prior=prior, theta0_u=truth_u, cfg=cfg)
+    return {"crlb_mg": crlb, "oracle_mg": scorer.sphere_rms_mg(fit.theta_u, t_end_s, model)}
+
+
 def _calibrated(rows: list[dict]) -> list[dict]:
     return [v for v in rows if v["status"] == "calibrated"]
 

@@ -84,9 +84,12 @@ def test_checkpoint_resumes_after_a_crash(tmp_path, monkeypatch):
 
 
 def test_effect_switched_on_degrades_the_base_model():
-    """What the base model does with an unmodelled temperature bias: larger residual error."""
-    base = replay(days=6, refit_every_days=3, seed=5, config=CFG)
-    eff = replay(days=6, refit_every_days=3, seed=5, config=CFG, effects=("temperature_bias",))
+    """What the base model does with an unmodelled temperature bias: larger residual error.
+    (Model selection is off: switched on, it replaces the base model on day 6.)"""
+    cfg = {**CFG, "selection": {**CFG.get("selection", {}), "enabled": False}}
+    base = replay(days=6, refit_every_days=3, seed=5, config=cfg)
+    eff = replay(days=6, refit_every_days=3, seed=5, config=cfg, effects=("temperature_bias",))
+    assert eff["model_final"] == "affine9"
     assert eff["truth"]["effects"]  # the simulator produced the effect
     assert eff["refits"][-1]["tilt_error_deg"] >= base["refits"][-1]["tilt_error_deg"]
     assert eff["refits"][-1]["sphere_norm_rms_mg"] > base["refits"][-1]["sphere_norm_rms_mg"]

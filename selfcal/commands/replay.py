@@ -308,7 +308,7 @@ def print_recording_replay(out: dict) -> None:
         return
     final = f"final: true {s['final_true_mg']:.3f} mg, predicted {s['final_predicted_mg']:.3f} mg"
     if s["crlb_sphere_mg"] is not None:
-        final += (f"; CRLB {s['crlb_sphere_mg']:.3f} mg, target {s['final_target_mg']:.2f} mg: "
+        final += (f"; CRLB (noise model) {s['crlb_sphere_mg']:.3f} mg, target {s['final_target_mg']:.2f} mg: "
                   f"{'within' if s['final_ok'] else 'ABOVE'}")
     print(final)
     if s["versions_per_week"] is not None:

@@ -102,6 +102,10 @@ class PoseTable:
         True mean specific force (foot frame).
     temp_true_c : ndarray, shape (m,), degC
     activity : ndarray of int8, shape (m,)
+    noise_var_g2 : ndarray, shape (m, 3), g^2
+        True variance of the noise of each window mean, per axis (white sensor noise and
+        quantisation averaged over ``n``, plus the low-pass sway): what an efficient
+        estimator's weights would be (the Cramér-Rao bound of ``bench/consistency.py``).
     """
 
     t_s: np.ndarray
@@ -114,6 +118,7 @@ class PoseTable:
     a_true_g: np.ndarray
     temp_true_c: np.ndarray
     activity: np.ndarray
+    noise_var_g2: np.ndarray
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -357,7 +362,7 @@ class Simulation:
         return PoseTable(
             t_s=t_start, duration_s=dur, n=n_recv.astype(np.int64), mean_g=mean_g, sd_g=sd_g,
             temp_c=temp_rep, pressure_kpa=press, a_true_g=a_true, temp_true_c=temp_true,
-            activity=s.activity[seg0],
+            activity=s.activity[seg0], noise_var_g2=var_mean,
         )
 
 
