@@ -37,35 +37,25 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT))
 
+from bout_noise import wilson  # noqa: E402  (the 95 % Wilson interval the other diagnose bench prints)
 from effectgen import EFFECT_RANGES, hidden_effect_case  # noqa: E402
 
 SEED_BASE = 31_000_000  # distinct from the seeds of tests/test_diagnose.py
 
 
-def wilson(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
-    """95 % Wilson score interval of a rate ``k / n``."""
-    if n == 0:
-        return 0.0, 1.0
-    p = k / n
-    d = 1 + z * z / n
-    c = (p + z * z / (2 * n)) / d
-    h = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
-    return max(0.0, c - h), min(1.0, c + h)
-
-
 def bic_cause(poses: dict) -> str | None:
     """Plain BIC over the base model and base + each effect (weighted LS, flat prior)."""
-    from selfcal.fit import FitConfig, PoseData, datasheet_prior, fit_poses
+    from selfcal.fit import FitConfig, PoseData, datasheet_prior, fit_poses, pose_sigma
     from selfcal.models import ErrorModel
 
     mean = np.asarray(poses["mean"], float)
     n = len(mean)
     data = PoseData(mean, poses["sd"], poses["count"], poses["t_s"], poses["temp_c"])
     cfg = FitConfig(sigma_floor_g=0.0)
-    ghat = mean / np.linalg.norm(mean, axis=1, keepdims=True)
-    sigma = np.sqrt(np.sum(ghat**2 * np.asarray(poses["sd"]) ** 2, axis=1) / poses["count"])
+    sigma = pose_sigma(mean, np.asarray(poses["sd"], float), np.asarray(poses["count"], float), cfg)
     best, best_bic = None, np.inf
     for effect in (None, *EFFECT_RANGES):
         model = ErrorModel("affine9" if effect is None else f"affine9+{effect}", 25.0, 0.0)

@@ -107,7 +107,7 @@ class SchedulerConfig(BaseModel):
                                   "bound on its whole-sphere shift, mg (1 g: none)")
     publish_final_improve_factor: float = Field(
         1.05, gt=1, description="...or one whose predicted sphere error shrank by this factor (and that moves the "
-                                "calibration by at most publish_max_shift_mg)")
+                                "calibration by at most publish_final_max_shift_mg)")
     publish_min_interval_s: float = Field(
         1800.0, ge=0, description="at most one version per this much data time (a status change is always published), s"
     )

@@ -213,9 +213,8 @@ def efficient_reference(model_name: str, truth: dict, poses, t_end_s: float) -> 
     sigma = NoiseModel.from_poses(data.mean, data.sd, data.count, cfg, model, data.temp_c, t_s)(truth_u)[0]
     _, jac = model.residual_jac(truth_u, data.mean, data.temp_c, t_s)
     jw = jac / sigma[:, None]
-    prior = datasheet_prior(model, cfg)
-    crlb = predicted_sphere_rms_mg(model, truth_u, np.linalg.inv(jw.T @ jw + prior.precision()), t_end_s)
-    fit = fit_poses(model, data, prior=prior, theta0_u=truth_u, cfg=cfg)
+    crlb = crlb_from_information(model, truth_u, jw.T @ jw, t_end_s, cfg)
+    fit = fit_poses(model, data, prior=datasheet_prior(model, cfg), theta0_u=truth_u, cfg=cfg)
     return {"crlb_mg": crlb, "oracle_mg": scorer.sphere_rms_mg(fit.theta_u, t_end_s, model)}
 
 
