@@ -4,8 +4,10 @@ Starts a real ``selfcal serve`` (real OnlineCalibrator, SQLite WAL, synchronous=
 and a *separate* load process. The load process simulates N insoles at 20 Hz, each
 sending one batch every ``--batch-s`` seconds (open loop: sends are scheduled, not
 paced by responses), over ``--connections`` keep-alive connections with a minimal
-raw-asyncio HTTP/1.1 client (so the client costs little CPU), while a prober issues
-``GET /devices/{id}/calibration`` at ``--get-hz`` and records its latency.
+raw-asyncio HTTP/1.1 client (so the client costs little CPU), while an app client in its
+own process issues ``GET /devices/{id}/calibration`` at ``--get-hz`` and records its
+latency. The same GETs are also issued from inside the load loop, where they wait behind
+the senders' work; both are printed.
 
 For each device count it prints offered and sustained (acknowledged) samples/s, and
 GET p50/p99; it stops after the first step that cannot sustain 90 % of the offered
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import heapq
 import json
 import os
 import random
@@ -131,16 +134,17 @@ async def load_main(args) -> None:
                 state["errors"] += 1
 
     async def scheduler(n_dev: int, stop: float):
-        # device i sends at phase i/n_dev * batch_s, then every batch_s
+        # device i sends at phase i/n_dev * batch_s, then every batch_s; a heap of due
+        # times, so a tick costs what is due rather than a scan of every device
         start = time.monotonic()
-        nxt = [start + (i / n_dev) * args.batch_s for i in range(n_dev)]
-        order = sorted(range(n_dev), key=lambda i: nxt[i])
+        due = [(start + (i / n_dev) * args.batch_s, i) for i in range(n_dev)]
+        heapq.heapify(due)
         while time.monotonic() < stop:
             now = time.monotonic()
-            for i in order:
-                if nxt[i] <= now:
-                    queue.put_nowait(i)
-                    nxt[i] += args.batch_s
+            while due[0][0] <= now:
+                when, i = heapq.heappop(due)
+                queue.put_nowait(i)
+                heapq.heappush(due, (when + args.batch_s, i))
             await asyncio.sleep(0.01)
 
     async def prober(lat: list, stop: float, n_dev: int):
@@ -223,21 +227,32 @@ async def load_main(args) -> None:
 
     senders = [asyncio.create_task(sender()) for _ in range(args.connections)]
     for n_dev in steps:
-        stop = time.monotonic() + args.warmup_s + args.step_s
+        start = time.monotonic()
+        stop = start + args.warmup_s + args.step_s
         sched = asyncio.create_task(scheduler(n_dev, stop))
         await asyncio.sleep(args.warmup_s)
         lat: list[float] = []
         probe = asyncio.create_task(prober(lat, stop, n_dev))
+        # an app's reads come from its own process: the same GETs from a client that does
+        # not share this loop (and its batch encoding) with the senders
+        app = subprocess.Popen(
+            [sys.executable, __file__, "--probe-only", "--port", str(port), "--get-hz", str(args.get_hz),
+             "--probe-devices", str(n_dev), "--probe-start", repr(start), "--probe-stop", repr(stop),
+             "--batch-s", str(args.batch_s), "--warmup-s", str(args.warmup_s), "--seed", str(args.seed + 1)],
+            stdout=subprocess.PIPE, text=True)
         a0, e0, t0 = state["acked"], state["errors"], time.monotonic()
         await asyncio.sleep(args.step_s)
         a1, e1, t1 = state["acked"], state["errors"], time.monotonic()
         await sched
         await probe
+        app_out, _ = await asyncio.to_thread(app.communicate)
+        app_lat = json.loads(app_out.strip().splitlines()[-1])
         offered = n_dev * RATE_HZ
         sustained = (a1 - a0) / (t1 - t0)
         rec = {"phase": "fleet", "devices": n_dev, "in_flight": args.connections, "offered_sps": offered,
                "sustained_sps": round(sustained), "req_per_s": round(sustained / n_batch, 1),
-               "backlog_batches": queue.qsize(), "errors": e1 - e0, **summary(lat)}
+               "backlog_batches": queue.qsize(), "errors": e1 - e0, **summary(lat),
+               **{f"app_{k}": v for k, v in app_lat.items()}}
         print(json.dumps(rec), flush=True)
         while not queue.empty():  # drain backlog between steps (bounded: the queue only shrinks)
             queue.get_nowait()
@@ -245,6 +260,28 @@ async def load_main(args) -> None:
             break
     for s in senders:
         s.cancel()
+
+
+async def probe_main(args) -> None:
+    """The app client: GETs at ``--get-hz`` on devices that have sent a batch, from its
+    own process and event loop; prints one JSON line of latency percentiles (ms)."""
+    conn = Conn("127.0.0.1", args.port)
+    r = random.Random(args.seed)
+    lat: list[float] = []
+    await asyncio.sleep(max(0.0, args.probe_start + args.warmup_s - time.monotonic()))
+    while time.monotonic() < args.probe_stop:
+        # device i first sends at start + i / n * batch_s: pick among those that have
+        sent = int(args.probe_devices * min(1.0, (time.monotonic() - args.probe_start) / args.batch_s))
+        dev = r.randrange(max(1, sent))
+        t0 = time.perf_counter()
+        status, _ = await conn.request("GET", f"/devices/bench-{dev:05d}/calibration")
+        if status in (200, 404):
+            lat.append(time.perf_counter() - t0)
+        await asyncio.sleep(1.0 / args.get_hz)
+    lat_ms = np.array(lat) * 1e3 if lat else np.array([np.nan])
+    print(json.dumps({"get_p50_ms": round(float(np.percentile(lat_ms, 50)), 2),
+                      "get_p99_ms": round(float(np.percentile(lat_ms, 99)), 2),
+                      "get_max_ms": round(float(lat_ms.max()), 2), "get_n": len(lat)}), flush=True)
 
 
 # ------------------------------------------------------------------ driver
@@ -284,7 +321,14 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--load-only", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--probe-only", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--probe-devices", type=int, default=1, help=argparse.SUPPRESS)
+    p.add_argument("--probe-start", type=float, default=0.0, help=argparse.SUPPRESS)
+    p.add_argument("--probe-stop", type=float, default=0.0, help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.probe_only:
+        asyncio.run(probe_main(args))
+        return 0
     if args.load_only:
         asyncio.run(load_main(args))
         return 0
@@ -330,8 +374,9 @@ def main() -> int:
                               f"max {r['get_max_ms']:6.2f} ms  (n={r['get_n']}, errors {r['errors']})", flush=True)
                         continue
                     print(f"[{fmt}] {r['devices']:7d}  {r['offered_sps']:9.0f}  {r['sustained_sps']:11.0f}  "
-                          f"{r['req_per_s']:5.0f}  {r['get_p50_ms']:10.2f}  {r['get_p99_ms']:10.2f}  {r['errors']:6d}",
-                          flush=True)
+                          f"{r['req_per_s']:5.0f}  {r['app_get_p50_ms']:10.2f}  {r['app_get_p99_ms']:10.2f}  "
+                          f"{r['errors']:6d}   (GETs from inside the load loop: p50 {r['get_p50_ms']:.2f}, "
+                          f"p99 {r['get_p99_ms']:.2f} ms)", flush=True)
                 load.wait(timeout=600)
                 m = metric_values(port)
                 stored = m.get("selfcal_ingest_samples_total", 0)

@@ -4,8 +4,9 @@ In one run, on loopback: for each configuration a fresh database and a real
 ``selfcal serve`` (PostgreSQL: ``--workers N --no-refit`` plus ``--refit-workers``
 ``selfcal worker`` processes; SQLite: the single embedded process), then the load
 process of ``bench/service_load.py`` (N insoles at 20 Hz, open loop, 20-s batches,
-32 keep-alive connections, a GET prober at 100 Hz). It prints samples/s acknowledged,
-GET p50/p99, and the refit backlog (age of the oldest batch not yet fed) sampled from
+32 keep-alive connections, a GET prober at 100 Hz in its own process, as an app is).
+It prints samples/s acknowledged, GET p50/p99 (and those of GETs sent from inside the
+load loop, which wait behind its senders), and the refit backlog (age of the oldest batch not yet fed) sampled from
 ``/metrics`` every 2 s, then a projection of the machines needed for 100 000 insoles
 from the measured per-core figures.
 
@@ -75,9 +76,11 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
     cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", db, "--port", str(port), "--log-level", "warning"]
     if db.startswith("postgresql"):
         cmd += ["--workers", str(procs), "--no-refit"]
+    else:
+        cmd += ["--refit-threads", str(args.worker_threads)]
     server = subprocess.Popen(cmd, env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
     workers = [subprocess.Popen([sys.executable, "-m", "selfcal.cli", "worker", "--db", db, "--status-every-s", "0",
-                                 "--log-level", "warning"], env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
+                                 "--threads", str(args.worker_threads), "--log-level", "warning"], env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
                for _ in range(refit_workers if db.startswith("postgresql") else 0)]
     backlog: list[tuple[float, float, float]] = []  # (t, oldest age s, batches)
     stop = threading.Event()
@@ -129,6 +132,7 @@ def main() -> int:
     ap.add_argument("--connections", type=int, default=32)
     ap.add_argument("--procs", default="1,2,4", help="API process counts on PostgreSQL")
     ap.add_argument("--refit-workers", type=int, default=1, help="selfcal worker processes on PostgreSQL")
+    ap.add_argument("--worker-threads", type=int, default=1, help="refit threads of each worker (and of SQLite's process)")
     ap.add_argument("--format", choices=["json", "binary"], default="binary")
     ap.add_argument("--no-sqlite", action="store_true")
     args = ap.parse_args()
@@ -153,9 +157,11 @@ def main() -> int:
             results.append(r)
             ages = [a for _, a, _ in r["backlog"] if a == a]
             print(f"{label:<38} acked {r['sustained_sps']:>8,.0f} samples/s ({r['req_per_s']:.0f} req/s)  "
-                  f"GET p50 {r['get_p50_ms']:6.2f} ms  p99 {r['get_p99_ms']:7.2f} ms  errors {r['errors']}  "
+                  f"GET p50 {r['app_get_p50_ms']:6.2f} ms  p99 {r['app_get_p99_ms']:7.2f} ms  errors {r['errors']}  "
                   f"oldest unfed batch: max {max(ages, default=float('nan')):.1f} s, "
                   f"last {ages[-1] if ages else float('nan'):.1f} s", flush=True)
+            print(f"    the same GETs from inside the load generator's loop: p50 {r['get_p50_ms']:.2f} ms, "
+                  f"p99 {r['get_p99_ms']:.2f} ms", flush=True)
             print("    backlog over time (s: oldest age s / batches): " + ", ".join(
                 f"{t:.0f}: {a:.1f}/{b:.0f}" for t, a, b in r["backlog"]), flush=True)
     # refit throughput: what was acknowledged minus what piled up (slope of the backlog)
@@ -171,7 +177,10 @@ def main() -> int:
         r["fed_sps"] = max(0.0, r["sustained_sps"] - slope * per_batch)
         print(f"  {r['label']:<38} fed {r['fed_sps']:>9,.0f} samples/s; backlog grows {slope:6.1f} batches/s")
     ingest = max(r["sustained_sps"] / max(1, r["procs"]) for r in results)
-    refit = max(r["fed_sps"] / max(1, r["refit_workers"]) for r in results)
+    refit = max((r["fed_sps"] / r["refit_workers"] for r in results if r["refit_workers"]), default=0.0)
+    if refit <= 0:
+        print("\nno refit worker ran (--refit-workers 0): no projection of the refit tier")
+        return 0
     print(f"\nprojection for 100 000 insoles (2 000 000 samples/s, {args.batch_s:g}-s batches), from the best "
           f"per-process figures measured here: ingest {ingest:,.0f} samples/s per API process, refits "
           f"{refit:,.0f} samples/s per worker process -> about {2e6 / ingest:.0f} API processes and "

@@ -3,7 +3,8 @@
 Every write is a function ``op(conn) -> value`` queued with :meth:`GroupCommitStore._submit`,
 which returns a ``Future``. The writer thread owns one writing connection. It takes
 every write queued so far (up to ``group_commit_max_ops``), runs each inside its own
-SAVEPOINT (a failing write, e.g. a 409 conflict, does not sink its neighbours), then
+SAVEPOINT (a failing write, e.g. a 409 conflict, does not sink its neighbours; an op
+marked ``one_statement`` that refuses in Python, not by a database error, needs none), then
 COMMITs once and only then resolves the futures: an acknowledgement always follows a
 durable commit.
 
@@ -55,6 +56,11 @@ class GroupCommitStore(Storage):
     def _is_storage_error(self, exc: BaseException) -> bool:
         """True if ``exc`` means the database cannot write (the whole group fails)."""
         raise NotImplementedError
+
+    def _is_database_error(self, exc: BaseException) -> bool:
+        """True if ``exc`` came from the database driver (after it, the transaction may be
+        aborted: an op without its own savepoint then fails its group)."""
+        return False
 
     def identity_problem(self) -> str | None:
         """Why the database is no longer the one opened, or None (SQLite checks its file)."""
@@ -126,6 +132,19 @@ class GroupCommitStore(Storage):
                     conn = self._writer_connect()
                     conn.execute(self.begin_sql)
                 for fn, fut in ops:
+                    if getattr(fn, "one_statement", False):
+                        # one statement that refuses by its result, never by a database
+                        # error: no savepoint (two round trips fewer); a database error
+                        # would leave the transaction aborted, so it fails the group
+                        try:
+                            value = fn(conn)
+                        except Exception as exc:
+                            if self._is_storage_error(exc) or self._is_database_error(exc):
+                                raise
+                            results.append((fut, False, exc))  # refused in Python: nothing to undo
+                        else:
+                            results.append((fut, True, value))
+                        continue
                     conn.execute("SAVEPOINT op")
                     try:
                         value = fn(conn)

@@ -1,10 +1,11 @@
-"""uvicorn's h11 protocol with deadlines for slow clients (header and body timeouts).
+"""uvicorn's HTTP protocols with deadlines for slow clients (header and body timeouts).
 
 uvicorn closes an *idle* keep-alive connection (``timeout_keep_alive``), but once a
 client has sent one byte it waits for the rest of the request head, and for the body,
 for ever. A few hundred clients that send half a request (slowloris) then hold
-sockets, memory and, for a body, a request task each. :class:`TimedH11Protocol` adds
-two deadlines per request:
+sockets, memory and, for a body, a request task each. :class:`TimedHttpToolsProtocol`
+(uvicorn's httptools parser, C, the default when ``httptools`` is installed) and
+:class:`TimedH11Protocol` (the pure-Python h11 parser) add two deadlines per request:
 
 * **head**: the request line and headers must be complete within ``header_timeout_s``
   of the connection being opened, or of the first byte of a request on a kept-alive
@@ -15,9 +16,11 @@ A client that misses a deadline is disconnected (the request task sees
 ``http.disconnect``; nothing is stored, as a body that never completed is never
 parsed), and ``on_timeout(kind)`` is called with kind ``header`` or ``body``.
 
-The class is module-level so that uvicorn can hand it to worker processes (they are
-spawned, and their configuration is pickled); :func:`configure` sets the deadlines in
-each process (the app factory calls it). It keeps uvicorn's parser (h11).
+The classes are module-level so that uvicorn can hand them to worker processes (they
+are spawned, and their configuration is pickled); :func:`configure` sets the deadlines
+in each process (the app factory calls it). :func:`protocol_class` picks the parser.
+httptools costs a fraction of h11's CPU a request, which is what a GET waits for
+behind a queue of ingests in the same event loop.
 """
 
 from __future__ import annotations
@@ -29,8 +32,8 @@ from typing import Any, Callable
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 
-class TimedH11Protocol(H11Protocol):
-    """``H11Protocol`` with a request-head and a request-body deadline (see the module)."""
+class _Deadlines:
+    """The deadlines, for either of uvicorn's protocols (a mixin placed before it)."""
 
     header_timeout_s: float = 10.0
     body_timeout_s: float = 30.0
@@ -62,20 +65,6 @@ class TimedH11Protocol(H11Protocol):
             self._arm("header", self.header_timeout_s, self.cycle)
         super().data_received(data)
 
-    def handle_events(self) -> None:
-        super().handle_events()
-        cycle = self.cycle
-        if cycle is None:
-            return
-        if cycle is not self._timed_cycle:  # a new request head is complete
-            self._timed_cycle = cycle
-            if cycle.more_body:
-                self._arm("body", self.body_timeout_s, cycle)
-            else:
-                self._disarm()
-        elif self._deadline_kind == "body" and not cycle.more_body:
-            self._disarm()  # its body is complete
-
     def on_response_complete(self) -> None:
         self._disarm()  # idle from here on: uvicorn's keep-alive timeout applies
         super().on_response_complete()  # may start a pipelined request (handle_events)
@@ -104,8 +93,60 @@ class TimedH11Protocol(H11Protocol):
         self.transport.close()
 
 
+class TimedH11Protocol(_Deadlines, H11Protocol):
+    """uvicorn's ``H11Protocol`` with a request-head and a request-body deadline."""
+
+    def handle_events(self) -> None:
+        super().handle_events()
+        cycle = self.cycle
+        if cycle is None:
+            return
+        if cycle is not self._timed_cycle:  # a new request head is complete
+            self._timed_cycle = cycle
+            if cycle.more_body:
+                self._arm("body", self.body_timeout_s, cycle)
+            else:
+                self._disarm()
+        elif self._deadline_kind == "body" and not cycle.more_body:
+            self._disarm()  # its body is complete
+
+
+try:  # the C parser (uvicorn's own default when it is installed)
+    from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+except ImportError:  # pragma: no cover - httptools is part of the 'service' extra
+    HttpToolsProtocol = None  # type: ignore[assignment,misc]
+
+if HttpToolsProtocol is not None:
+
+    class TimedHttpToolsProtocol(_Deadlines, HttpToolsProtocol):  # type: ignore[misc,valid-type]
+        """uvicorn's ``HttpToolsProtocol`` with a request-head and a request-body deadline."""
+
+        def on_headers_complete(self) -> None:
+            super().on_headers_complete()
+            cycle = self.cycle  # the new request (queued behind the current one if pipelined)
+            self._timed_cycle = cycle
+            self._arm("body", self.body_timeout_s, cycle)  # disarmed when its message completes
+
+        def on_message_complete(self) -> None:
+            super().on_message_complete()
+            if self._deadline_kind == "body":
+                self._disarm()
+
+
+def protocol_class(parser: str = "auto") -> type:
+    """The timed protocol for ``parser``: ``httptools``, ``h11`` or ``auto`` (httptools
+    when installed, else h11). Raises ``ValueError`` for httptools when it is missing."""
+    if parser == "h11" or (parser == "auto" and HttpToolsProtocol is None):
+        return TimedH11Protocol
+    if HttpToolsProtocol is None:
+        raise ValueError("http_parser = httptools, but httptools is not installed (pip install httptools)")
+    if parser not in ("auto", "httptools"):
+        raise ValueError(f"http_parser must be auto, httptools or h11, got {parser!r}")
+    return TimedHttpToolsProtocol
+
+
 def configure(header_timeout_s: float, body_timeout_s: float, on_timeout: Callable[[str], None] | None) -> None:
     """Set the deadlines (seconds) and the timeout callback for this process."""
-    TimedH11Protocol.header_timeout_s = float(header_timeout_s)
-    TimedH11Protocol.body_timeout_s = float(body_timeout_s)
-    TimedH11Protocol.on_timeout = staticmethod(on_timeout) if on_timeout is not None else None  # type: ignore[assignment]
+    _Deadlines.header_timeout_s = float(header_timeout_s)
+    _Deadlines.body_timeout_s = float(body_timeout_s)
+    _Deadlines.on_timeout = staticmethod(on_timeout) if on_timeout is not None else None  # type: ignore[assignment]

@@ -79,6 +79,9 @@ class Settings(BaseModel):
         10.0, gt=0, le=600, description="a request's line and headers must arrive within this (slow clients)"
     )
     body_timeout_s: float = Field(30.0, gt=0, le=3600, description="a request's body must arrive within this")
+    http_parser: Literal["auto", "httptools", "h11"] = Field(
+        "auto", description="uvicorn's HTTP parser: httptools (C; auto picks it when installed) or h11 (pure Python)"
+    )
     keep_alive_timeout_s: int = Field(5, ge=1, le=600, description="an idle keep-alive connection is closed after this")
     metrics_dir: str = Field(
         "", description="a folder shared by this machine's API processes: /metrics adds up all of them "

@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         import uvicorn
 
-        from selfcal_service.http_protocol import TimedH11Protocol
+        from selfcal_service.http_protocol import protocol_class
         from selfcal_service.logs import uvicorn_log_config
         from selfcal_service.main import SERVE_ENV, create_app
         from selfcal_service.pg_store import is_postgres_url
@@ -66,6 +66,10 @@ def run(args: argparse.Namespace) -> int:
         },
     )
     postgres = is_postgres_url(settings.db_path)
+    try:
+        http_protocol = protocol_class(settings.http_parser)
+    except ValueError as exc:
+        raise InputError(f"service setting http_parser: {exc}") from None
     if args.workers < 1:
         raise InputError(f"--workers {args.workers}: must be 1 or more")
     if not postgres and (args.workers > 1 or not settings.refit_in_process):
@@ -94,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         access_log=settings.access_log,
         timeout_graceful_shutdown=10,
         timeout_keep_alive=settings.keep_alive_timeout_s,
-        http=TimedH11Protocol,
+        http=http_protocol,
     )
     log_config = uvicorn_log_config(settings.log_level, settings.log_format)
     if log_config is not None:

@@ -325,15 +325,16 @@ def test_a_500_keeps_the_keep_alive_connection_open(tmp_path):
 
 
 # ------------------------------------------------------------------ 6. slow clients
-def test_slow_clients_are_disconnected_and_others_still_served(tmp_path):
+@pytest.mark.parametrize("parser", ["httptools", "h11"])
+def test_slow_clients_are_disconnected_and_others_still_served(tmp_path, parser):
     """Half-sent heads, dripped heads and stalled bodies are closed at their deadlines;
-    an ordinary keep-alive client that pauses between requests is not."""
+    an ordinary keep-alive client that pauses between requests is not (both parsers)."""
     import selectors
     import socket
 
     from service_helpers import KEYS
 
-    srv = server(tmp_path, header_timeout_s=1.0, body_timeout_s=2.0, keep_alive_timeout_s=5)
+    srv = server(tmp_path, header_timeout_s=1.0, body_timeout_s=2.0, keep_alive_timeout_s=5, http_parser=parser)
     socks: dict[str, list[socket.socket]] = {"silent": [], "half_head": [], "drip": [], "stalled_body": []}
     try:
         for kind, n in (("silent", 50), ("half_head", 200), ("drip", 20), ("stalled_body", 30)):

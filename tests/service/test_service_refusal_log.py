@@ -2,7 +2,7 @@
 
 ``commit_progress`` appends a cycle's refusals in its transaction and keeps a device's
 newest ``REFUSALS_KEPT_PER_DEVICE``; ``fleet`` returns each device's newest refusal, its
-backlog and the served version's figures; a PostgreSQL database of schema 1 migrates.
+backlog and the served version's figures; a PostgreSQL database of schema 1 migrates (to 3).
 """
 
 from __future__ import annotations
@@ -92,17 +92,22 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
     store.close()
     with psycopg.connect(url, autocommit=True) as conn:  # back to what schema 1 had
         conn.execute("DROP TABLE refusals")
+        conn.execute("DROP FUNCTION selfcal_ingest")  # v3's one-round-trip ingest
         conn.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
     store = PostgresStore(url)
     store.open()
     try:
         store.commit_progress(_cycle("dev-m", [RefusalRecord("refit", "implausible", "scale")])).result(timeout=30)
         assert [r.reason for r in store.refusals("dev-m", 10)] == ["implausible"]
+        # v3: ingest through the function the migration created
+        first = store.submit_batch("dev-m", 0, 1, b"x", 1.0, b"d", 1000).result(timeout=30)
+        again = store.submit_batch("dev-m", 0, 1, b"x", 1.0, b"d", 1000).result(timeout=30)
+        assert (first.duplicate, again.duplicate) == (False, True)
     finally:
         store.close()
     with psycopg.connect(url, autocommit=True) as conn:
         assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == str(SCHEMA_VERSION)
-    assert SCHEMA_VERSION == 2
+    assert SCHEMA_VERSION == 3
 
 
 def test_the_refit_worker_logs_refits_without_a_model_and_rejected_batches():

@@ -222,13 +222,16 @@ def test_plan_a_batch_the_calibrator_refused_leaves_no_gap():
     assert [r.seq for r in take] == [8] and not held and not late
 
 
-def test_protocol_sets_tcp_nodelay_even_on_a_socket_without_proto():
+@pytest.mark.parametrize("parser", ["h11", "httptools"])
+def test_protocol_sets_tcp_nodelay_even_on_a_socket_without_proto(parser):
     """uvicorn's worker processes get the listening socket back with proto 0, and asyncio
     then skips TCP_NODELAY: each response body waited ~40 ms for a delayed ACK."""
     import asyncio
     import socket
 
-    from selfcal_service.http_protocol import TimedH11Protocol
+    from selfcal_service.http_protocol import protocol_class
+
+    TimedH11Protocol = protocol_class(parser)  # noqa: N806 - the class under test
 
     srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)  # as uvicorn's bind_socket makes it: proto 0
     srv.bind(("127.0.0.1", 0))
