@@ -80,7 +80,8 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
         cmd += ["--refit-threads", str(args.worker_threads)]
     server = subprocess.Popen(cmd, env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
     workers = [subprocess.Popen([sys.executable, "-m", "selfcal.cli", "worker", "--db", db, "--status-every-s", "0",
-                                 "--threads", str(args.worker_threads), "--log-level", "warning"], env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
+                                 "--threads", str(args.worker_threads), "--nice", str(args.worker_nice),
+                                 "--log-level", "warning"], env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
                for _ in range(refit_workers if db.startswith("postgresql") else 0)]
     backlog: list[tuple[float, float, float]] = []  # (t, oldest age s, batches)
     stop = threading.Event()
@@ -132,6 +133,7 @@ def main() -> int:
     ap.add_argument("--connections", type=int, default=32)
     ap.add_argument("--procs", default="1,2,4", help="API process counts on PostgreSQL")
     ap.add_argument("--refit-workers", type=int, default=1, help="selfcal worker processes on PostgreSQL")
+    ap.add_argument("--worker-nice", type=int, default=0, help="selfcal worker --nice N (PostgreSQL)")
     ap.add_argument("--worker-threads", type=int, default=1, help="refit threads of each worker (and of SQLite's process)")
     ap.add_argument("--format", choices=["json", "binary"], default="binary")
     ap.add_argument("--no-sqlite", action="store_true")
@@ -150,13 +152,14 @@ def main() -> int:
     with PgCluster(max_connections=200) as pg, tempfile.TemporaryDirectory(prefix="selfcal-scale-") as tmp:
         configs = [] if args.no_sqlite else [("sqlite, 1 process (embedded refits)", f"{tmp}/scale.db", 1)]
         for n in [int(x) for x in args.procs.split(",")]:
-            configs.append((f"postgresql, {n} API + {args.refit_workers} worker",
+            nice = f" (nice {args.worker_nice})" if args.worker_nice and args.refit_workers else ""
+            configs.append((f"postgresql, {n} API + {args.refit_workers} worker{nice}",
                             pg.create_database(f"scale_{n}"), n))
         for label, db, n in configs:
             r = run_config(label, db, n, args.refit_workers, args)
             results.append(r)
             ages = [a for _, a, _ in r["backlog"] if a == a]
-            print(f"{label:<38} acked {r['sustained_sps']:>8,.0f} samples/s ({r['req_per_s']:.0f} req/s)  "
+            print(f"{label:<40} acked {r['sustained_sps']:>8,.0f} samples/s ({r['req_per_s']:.0f} req/s)  "
                   f"GET p50 {r['app_get_p50_ms']:6.2f} ms  p99 {r['app_get_p99_ms']:7.2f} ms  errors {r['errors']}  "
                   f"oldest unfed batch: max {max(ages, default=float('nan')):.1f} s, "
                   f"last {ages[-1] if ages else float('nan'):.1f} s", flush=True)

@@ -59,6 +59,7 @@ from selfcal.fit import (
 from selfcal.models import ErrorModel, Normalizer
 from selfcal.poses import PoseConfig, PoseStore
 from selfcal.selection import (
+    SECONDARY_EFFECTS,
     Comparison,
     SelectionConfig,
     change_record,
@@ -470,7 +471,7 @@ class OnlineCalibrator:
             # add: the best supported candidate
             supported: list[Comparison] = []
             for e in c.candidates:
-                if e in self.model.effects:
+                if e in self.model.effects or not self.model.takes(e):
                     continue
                 large = self._candidate(e)
                 mask, data, cfg, cv_small = cells(large.uses_temperature)
@@ -492,7 +493,16 @@ class OnlineCalibrator:
         # bias and a scale on flat poses): waiting for data that separate them would leave the
         # device on the base model, which predicts worse than either, so the better one goes in
         # now, and a rival that went in first is dropped once the other has joined
-        best = max(supported, key=lambda x: x.gain_rel)
+        # a secondary effect (the cross-axis tempcos: on flat poses nearly a copy of a
+        # temperature bias) goes in when no primary one is supported, or when its terms'
+        # evidence (Wald chi2) beats the best primary's by secondary_margin_chi2
+        primary = [x for x in supported if x.effect not in SECONDARY_EFFECTS]
+        best = max(primary or supported, key=lambda x: x.gain_rel)
+        if primary:
+            strong = [x for x in supported if x.effect in SECONDARY_EFFECTS
+                      and x.wald_chi2 - max(p.wald_chi2 for p in primary) >= c.secondary_margin_chi2]
+            if strong:
+                best = max(strong, key=lambda x: x.gain_rel)
         return self._switch(ErrorModel(best.large, self.model.temp_ref_c, self._candidate(best.effect).t_ref_s),
                             best, "added", t_now, results)
 

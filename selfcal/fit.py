@@ -74,6 +74,8 @@ class FitConfig(BaseModel):
     prior_temp_scale_per_c: float = Field(3e-4, gt=0, description="prior sd of the sensitivity tempco, 1/degC")
     prior_drift_g_per_day: float = Field(2e-3, gt=0, description="prior sd of the offset drift, g/day")
     prior_nonlin_per_g: float = Field(0.01, gt=0, description="prior sd of the quadratic nonlinearity q, 1/g")
+    prior_temp_cross_per_c: float = Field(
+        1e-4, gt=0, description="prior sd of the cross-axis tempco tn, 1/degC (100 ppm/degC: 2 mrad over 20 degC)")
     determined_ratio: float = Field(
         0.3, gt=0, lt=1,
         description="a parameter is determined when the data shrink its prior sd to this fraction (>= 91 % of its information from data)",
@@ -119,6 +121,7 @@ class GuardConfig(BaseModel):
     max_temp_scale_per_c: float = Field(0.005, gt=0, description="plausible |temperature scale|, 1/degC")
     max_drift_g_per_day: float = Field(0.05, gt=0, description="plausible |bias drift|, g/day")
     max_nonlin_per_g: float = Field(0.1, gt=0, description="plausible |scale nonlinearity q|, 1/g")
+    max_temp_cross_per_c: float = Field(0.002, gt=0, description="plausible |cross-axis tempco tn|, 1/degC")
     max_residual_rms_mg: float = Field(30.0, gt=0, description="fit residual RMS above this: implausible")
 
     @classmethod
@@ -226,6 +229,7 @@ def datasheet_prior(model: ErrorModel, cfg: FitConfig | None = None, inflate: fl
         "temperature_scale": cfg.prior_temp_scale_per_c,
         "time_drift_bias": cfg.prior_drift_g_per_day,
         "scale_nonlinearity": cfg.prior_nonlin_per_g,
+        "temperature_cross": cfg.prior_temp_cross_per_c,
     }
     for eff in model.effects:
         sd[model.index(eff)] = per_effect[eff]
@@ -1019,6 +1023,7 @@ def implausible(model: ErrorModel, theta_u: np.ndarray, cfg: GuardConfig) -> str
         "temperature_scale": cfg.max_temp_scale_per_c,
         "time_drift_bias": cfg.max_drift_g_per_day,
         "scale_nonlinearity": cfg.max_nonlin_per_g,
+        "temperature_cross": cfg.max_temp_cross_per_c,
     }
     checks += [(e, limits[e], 0.0) for e in model.effects]
     for key, lim, centre in checks:

@@ -26,6 +26,9 @@ Effects (extensions; each adds 3 per-axis parameters)
 ``time_drift_bias``    ``dbx, dby, dbz`` raw unit per day: offset ``b + db (t - t_ref)/86400``
 ``scale_nonlinearity`` ``qx, qy, qz`` 1/g: ``a_i = l_i - q_i l_i**2`` where ``l`` is the
                        linear calibrated value (g); ``q = 0.002`` is 2 mg/g².
+``temperature_cross``  ``tnxy, tnxz, tnyz`` 1/degC (affine9 only): the cross-axis terms
+                       ``n + tn (T - T_ref)`` (a package that bends as it warms couples
+                       the axes; ``tn = 1e-5`` is 10 ppm/degC of cross-axis coupling)
 
 The simulator (``selfcal.sim``) produces the same effects in the forward direction;
 the forms here are their first-order inverses.
@@ -52,12 +55,13 @@ EFFECT_PARAMS = {
     "temperature_scale": ("tsx", "tsy", "tsz"),
     "time_drift_bias": ("dbx", "dby", "dbz"),
     "scale_nonlinearity": ("qx", "qy", "qz"),
+    "temperature_cross": ("tnxy", "tnxz", "tnyz"),
 }
 
 #: Units of each parameter family, for documentation and reports ("raw" = recording unit).
 PARAM_UNITS = {
     "b": "raw", "s": "g/raw", "n": "1", "psi": "rad", "theta": "rad", "phi": "rad",
-    "tb": "raw/degC", "ts": "1/degC", "db": "raw/day", "q": "1/g",
+    "tb": "raw/degC", "ts": "1/degC", "db": "raw/day", "q": "1/g", "tn": "1/degC",
 }
 
 _UPPER = ((0, 1), (0, 2), (1, 2))  # positions of nxy, nxz, nyz
@@ -79,6 +83,8 @@ def parse_model_name(name: str) -> tuple[str, tuple[str, ...]]:
         raise InputError(f"model: effect repeated in {name!r}")
     if parts[0] == "seed9" and effects:
         raise InputError("model: seed9 is a demonstration model and takes no effects")
+    if "temperature_cross" in effects and parts[0] != "affine9":
+        raise InputError(f"model: temperature_cross varies the cross-axis terms of affine9; {parts[0]} has none")
     # canonical order, so that names compare equal
     effects = tuple(e for e in EFFECT_PARAMS if e in effects)
     return parts[0], effects
@@ -168,6 +174,11 @@ class ErrorModel:
                 raise InputError(f"params: missing {n!r} for model {self.name}")
         return theta
 
+    def takes(self, effect: str) -> bool:
+        """Whether ``effect`` can be added to this base model (cross-axis terms need affine9)."""
+        return effect in EFFECT_PARAMS and self.base != "seed9" and (
+            effect != "temperature_cross" or self.base == "affine9")
+
     def with_effects(self, effects: tuple[str, ...]) -> "ErrorModel":
         """The same base model with a different set of effects."""
         return ErrorModel("+".join((self.base,) + tuple(effects)), self.temp_ref_c, self.t_ref_s)
@@ -235,8 +246,7 @@ class ErrorModel:
         dtemp = dtime = None
         if not self.effects:
             return dtemp, dtime
-        needs_temp = "temperature_bias" in self.effects or "temperature_scale" in self.effects
-        if needs_temp:
+        if self.uses_temperature:
             if temp_c is None:
                 raise InputError(f"model {self.name} needs temp_c (degC) for every row")
             dtemp = np.asarray(temp_c, dtype=float).reshape(n) - self.temp_ref_c
@@ -266,6 +276,14 @@ class ErrorModel:
             y = raw + b
             z = s_eff * y
             lin = z @ u.T
+        elif "temperature_cross" in self.effects:
+            y = raw - b
+            nt = theta[6:9] + dtemp[:, None] * theta[self.index("temperature_cross")]  # (n, 3) per row
+            u = nt  # the per-row cross-axis terms (the Jacobian reads them from here)
+            z = y.copy()  # z = U(T) y, U unit upper triangular
+            z[:, 0] += nt[:, 0] * y[:, 1] + nt[:, 1] * y[:, 2]
+            z[:, 1] += nt[:, 2] * y[:, 2]
+            lin = s_eff * z
         else:
             y = raw - b
             z = y @ u.T  # z = U y
@@ -330,7 +348,12 @@ class ErrorModel:
             return r, jac
         # lin = s_eff * z, z = U y, y = raw - b_eff
         ws = w * s_eff
-        v = ws @ u  # dr/dy, rows
+        if "temperature_cross" in self.effects:  # u holds the per-row (nxy, nxz, nyz)
+            v = ws.copy()  # dr/dy = ws^T U(T), rows
+            v[:, 1] += ws[:, 0] * u[:, 0]
+            v[:, 2] += ws[:, 0] * u[:, 1] + ws[:, 1] * u[:, 2]
+        else:
+            v = ws @ u  # dr/dy, rows
         jac[:, 0:3] = -v
         scale_factor = 1.0
         if "temperature_scale" in self.effects:
@@ -342,6 +365,8 @@ class ErrorModel:
             jac[:, 6] = ws[:, 0] * y[:, 1]
             jac[:, 7] = ws[:, 0] * y[:, 2]
             jac[:, 8] = ws[:, 1] * y[:, 2]
+            if "temperature_cross" in self.effects:
+                jac[:, self.index("temperature_cross")] = jac[:, 6:9] * dtemp[:, None]
         if "temperature_bias" in self.effects:
             jac[:, self.index("temperature_bias")] = -v * dtemp[:, None]
         if "time_drift_bias" in self.effects:

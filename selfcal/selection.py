@@ -42,6 +42,12 @@ from selfcal.fit import FitConfig, FitResult, PoseData, Prior, fit_poses
 from selfcal.models import EFFECT_PARAMS, ErrorModel
 
 
+#: Effects switched in only when no primary effect is supported in the same check, or when
+#: their evidence beats the best primary's by ``secondary_margin_chi2`` (the cross-axis
+#: tempcos look like a temperature bias on mostly flat poses; docs/diagnose.md).
+SECONDARY_EFFECTS = ("temperature_cross",)
+
+
 class SelectionConfig(BaseModel):
     """The ``[selection]`` section: when and how the online calibrator changes its model."""
 
@@ -60,6 +66,8 @@ class SelectionConfig(BaseModel):
     min_temp_span_c: float = Field(3.0, gt=0, description="temperature span across cells for temperature terms, degC")
     min_time_span_days: float = Field(3.0, gt=0, description="data span for the time drift, days")
     clip_mg: float = Field(20.0, gt=0, description="held-out residuals are clipped here (one wild cell cannot decide), mg")
+    secondary_margin_chi2: float = Field(
+        10.0, gt=0, description="a secondary effect beats a supported primary one when its Wald chi2 is this much larger")
 
     @classmethod
     def from_section(cls, section_: dict | None) -> "SelectionConfig":

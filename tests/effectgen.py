@@ -9,6 +9,8 @@ included) plus one hidden effect in its *forward* (physical) form:
 * temperature_scale  the axis gain is multiplied by (1 + k [ppm/degC] * (T - 25))
 * time_drift_bias    raw += k [mg/day] * t_days on one axis
 * scale_nonlinearity raw += k [mg/g^2] * a_axis^2 on one axis (a: true specific force)
+* temperature_cross  raw_i += k [ppm/degC] * (T - 25) * a_j: axis i picks up axis j's signal
+                     (i != j, either order: a package that bends as it warms)
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ EFFECT_RANGES = {  # realistic magnitudes (the issue's ranges), physical units
     "scale_nonlinearity": (1.5, 4.0),     # mg/g^2
 }
 NAMES = tuple(EFFECT_RANGES) + (None,)
+#: Effects the diagnosis treats as secondary (named only when clearly better than a primary).
+SECONDARY_RANGES = {"temperature_cross": (100.0, 300.0)}  # ppm/degC
 
 
 def _rot(axis, ang):
@@ -71,7 +75,7 @@ def hidden_effect_case(rng, effect=None, magnitude=None, n_poses=120, days=8.0, 
     axis = int(rng.integers(3))
     sign = float(rng.choice([-1.0, 1.0]))
     if effect is not None and magnitude is None:
-        lo, hi = EFFECT_RANGES[effect]
+        lo, hi = {**EFFECT_RANGES, **SECONDARY_RANGES}[effect]
         magnitude = rng.uniform(lo, hi)
     coef = 0.0 if effect is None else sign * magnitude
     raw = lin + offset
@@ -84,6 +88,9 @@ def hidden_effect_case(rng, effect=None, magnitude=None, n_poses=120, days=8.0, 
         raw[:, axis] += 1e-3 * coef * t_s / 86400
     elif effect == "scale_nonlinearity":
         raw[:, axis] += 1e-3 * coef * a[:, axis] ** 2
+    elif effect == "temperature_cross":
+        other = (axis + 1 + int(rng.integers(2))) % 3
+        raw[:, axis] += 1e-6 * coef * dT * a[:, other]
     raw += rng.normal(0, 1, raw.shape) * sample_sd_g / np.sqrt(count)[:, None]
     poses = {"mean": raw, "sd": np.full((n_poses, 3), sample_sd_g), "count": count, "t_s": t_s, "temp_c": temp}
     truth = {"effect": effect, "axis": "xyz"[axis], "coef": coef, "magnitude": magnitude}

@@ -103,7 +103,7 @@ def test_cli_diagnose_json_and_report(tmp_path, capsys):
     assert main(["diagnose", str(path), "--json", "--report", str(tmp_path / "rep")]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["cause"] == "temperature_bias"
-    assert {e["name"] for e in out["effects"]} == set(EFFECT_RANGES)
+    assert {e["name"] for e in out["effects"]} == set(EFFECT_RANGES) | {"temperature_cross"}
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "What the simulation gets wrong" in md and "temperature_bias" in md
     assert (tmp_path / "rep" / "residual_vs_temp_time.png").stat().st_size > 1000
@@ -179,3 +179,16 @@ def test_bout_noise_keeps_correlated_effect_free_sets_clean():
     print(alarms)
     assert alarms["bouts"] == 0
     assert alarms["independent"] >= 2  # the failure the model fixes is real on these sets
+
+
+def test_cross_axis_temperature_terms_are_named_when_the_poses_tell_them_apart():
+    """A cross-axis tempco (axis i picks up k (T - 25) of axis j, 100-300 ppm/degC, either
+    direction) on 240 insole poses: named temperature_cross in >= 90 % of 30 seeds (29/30
+    measured), and never taken for another effect."""
+    from effectgen import SECONDARY_RANGES  # noqa: F401 - the generator's range of the effect
+
+    causes = [_diagnose(hidden_effect_case(np.random.default_rng(77_000 + seed), "temperature_cross",
+                                           n_poses=240)[0])["cause"] for seed in range(30)]
+    print(causes)
+    assert causes.count("temperature_cross") >= 27, causes
+    assert set(causes) <= {"temperature_cross", None}, causes

@@ -155,3 +155,22 @@ def test_replay_fleet_prints_how_many_devices_switched_and_when(capsys):
     out = capsys.readouterr().out
     assert "model selection: 2/2 devices switched (median day of the first switch 6.00)" in out, out
     assert "affine9+temperature_bias x2" in out
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_a_strong_cross_axis_tempco_goes_in_over_the_temperature_bias_it_resembles(seed):
+    """300 ppm/degC cross-axis tempcos: on flat poses they look like a temperature bias,
+    and both are supported; the secondary effect goes in because its evidence (Wald chi2)
+    beats the bias's by secondary_margin_chi2, and the result is the right model's."""
+    cfg = load_config(None)
+    cfg["sim"].setdefault("effects", {})["temperature_cross"] = {"magnitude": [300.0, 300.0, 300.0]}
+    out = replay(days=9, seed=seed, config=cfg, effects=("temperature_cross",))
+    assert out["model_final"] == "affine9+temperature_cross", out["model_switches"]
+    assert out["model_switches"][0]["effect"] == "temperature_cross"
+    for name, e in out["effect_summary"].items():
+        assert e["final_error_sd"] <= 3.0, (name, e)
+
+
+def test_cross_axis_terms_are_never_a_candidate_of_scale6():
+    cal = OnlineCalibrator(config=load_config(None), model="scale6")
+    assert not cal.model.takes("temperature_cross") and cal.model.takes("temperature_bias")

@@ -17,6 +17,9 @@ import sys
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--db", metavar="URL", required=True, help="postgresql://user@host:port/dbname")
     parser.add_argument("--threads", type=int, default=None, help="refit threads (default 1)")
+    parser.add_argument("--nice", type=int, default=0, metavar="N",
+                        help="lower this process's CPU priority by N (0-19): on a machine shared with API "
+                             "processes, reads then go first and refits take what is left")
     parser.add_argument("--status-every-s", type=float, default=10.0,
                         help="print a status line this often (0: never)")
     parser.add_argument("--log-format", default=None, choices=["text", "json"], help="json: structured logs")
@@ -44,6 +47,12 @@ def run(args: argparse.Namespace) -> int:
     except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
         raise InputError(f"the worker needs the 'service' and 'postgres' extras: {exc}") from exc
 
+    if not 0 <= args.nice <= 19:
+        raise InputError(f"--nice {args.nice}: must be 0 to 19")
+    if args.nice:
+        import os
+
+        os.nice(args.nice)
     if not is_postgres_url(args.db):
         raise InputError(f"--db {args.db}: a refit worker needs a shared postgresql:// database "
                          "(with a SQLite file, `selfcal serve` runs the refits itself)")

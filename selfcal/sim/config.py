@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from selfcal.errors import InputError
 
 #: Names of the sensor effects, in the order used everywhere (truth, CLI, docs).
-EFFECT_NAMES = ("temperature_bias", "temperature_scale", "time_drift_bias", "scale_nonlinearity")
+EFFECT_NAMES = ("temperature_bias", "temperature_scale", "time_drift_bias", "scale_nonlinearity", "temperature_cross")
 
 Triple = tuple[float, float, float]
 
@@ -194,13 +194,17 @@ def _eff(m: float) -> EffectConfig:
 
 
 class EffectsConfig(_Strict):
-    """The four effects; units: mg/degC, ppm/degC, mg/day, mg/g^2."""
+    """The effects; units: mg/degC, ppm/degC, mg/day, mg/g^2, ppm/degC."""
 
     temp_ref_c: float = 25.0
     temperature_bias: EffectConfig = _eff(0.5)          # mg/degC
     temperature_scale: EffectConfig = _eff(200.0)       # ppm/degC
     time_drift_bias: EffectConfig = _eff(0.3)           # mg/day
     scale_nonlinearity: EffectConfig = _eff(3.0)        # mg/g^2
+    # cross-axis coupling per degC (nxy, nxz, nyz); 100 ppm/degC over 20 degC is 2 mrad,
+    # a bending package's order of magnitude (the datasheets give cross-axis sensitivity,
+    # ~1-2 %, but not its tempco: this is a stress case, not a typical part)
+    temperature_cross: EffectConfig = _eff(100.0)       # ppm/degC
 
 
 class BleConfig(_Strict):

@@ -7,14 +7,20 @@ temperature ``T`` (degC) and time ``t`` (s since the start of the simulation)::
     dT   = T - temp_ref_c                     t_day = t / 86400
     l    = a + 1e-3 * q * a**2                              scale_nonlinearity (mg/g^2)
     M(T) = diag(1 + 1e-6 * ts * dT) @ matrix_true           temperature_scale (ppm/degC)
+    M(T) = Q diag(s) (U + 1e-6 * dT * N(tn))                temperature_cross (ppm/degC)
     raw  = offset_true + 1e-3 * tb * dT + 1e-3 * db * t_day + inv(M(T)) @ l + noise
     raw  = clip(lsb * round(raw / lsb), -range, +range)
 
 ``tb`` temperature_bias (mg/degC), ``db`` time_drift_bias (mg/day); products are per axis.
+``matrix_true = Q diag(s) U`` (``canonical_qr``), ``U`` unit upper triangular with the
+cross-axis terms ``nxy, nxz, nyz``; ``N(tn)`` is strictly upper triangular with their
+tempcos ``tn = (tnxy, tnxz, tnyz)``. With both temperature effects on, the scale tempco
+acts on ``l`` first.
 """
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,6 +34,7 @@ EFFECT_UNITS = {
     "temperature_scale": "ppm/degC",
     "time_drift_bias": "mg/day",
     "scale_nonlinearity": "mg/g^2",
+    "temperature_cross": "ppm/degC",
 }
 
 #: The same coefficient in the units and parameter names of ``selfcal.models``
@@ -37,7 +44,13 @@ EFFECT_MODEL_PARAMS = {
     "temperature_scale": (1e-6, ("tsx", "tsy", "tsz")),     # 1/degC
     "time_drift_bias": (1e-3, ("dbx", "dby", "dbz")),       # g/day
     "scale_nonlinearity": (1e-3, ("qx", "qy", "qz")),       # 1/g
+    "temperature_cross": (1e-6, ("tnxy", "tnxz", "tnyz")),  # 1/degC
 }
+
+#: Effects drawn from the device's own stream of random numbers (the first four). Effects
+#: added later draw from a generator seeded by the device's drawn values, so a seed still
+#: draws the same device, and the same later draws, as before they existed.
+_STREAM_EFFECTS = ("temperature_bias", "temperature_scale", "time_drift_bias", "scale_nonlinearity")
 
 SECONDS_PER_DAY = 86400.0
 
@@ -162,8 +175,10 @@ class SensorTruth:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "SensorTruth":
         """Inverse of :meth:`to_dict`."""
-        eff = {n: np.asarray(d["effects"][n]["coefficients"], float) for n in EFFECT_NAMES}
-        enabled = tuple(n for n in EFFECT_NAMES if d["effects"][n]["enabled"])
+        # a truth written before an effect existed has it off
+        eff = {n: np.asarray(d["effects"][n]["coefficients"], float) if n in d["effects"] else np.zeros(3)
+               for n in EFFECT_NAMES}
+        enabled = tuple(n for n in EFFECT_NAMES if n in d["effects"] and d["effects"][n]["enabled"])
         return cls(
             matrix=np.asarray(d["matrix"], float),
             offset=np.asarray(d["offset"], float),
@@ -203,10 +218,13 @@ def draw_sensor_truth(config: SimConfig, rng: np.random.Generator) -> SensorTrut
     rotation = _rot(0, mis[0]) @ _rot(1, mis[1]) @ _rot(2, mis[2])
     matrix = rotation @ np.diag(scale) @ upper
     effects = {}
+    side = np.random.default_rng(np.frombuffer(hashlib.sha256(
+        np.concatenate([scale, nonorth, mis, offset]).tobytes()).digest(), dtype=np.uint32))
     for name in EFFECT_NAMES:
         ec = getattr(config.effects, name)
-        sign = rng.choice([-1.0, 1.0], 3)
-        frac = rng.uniform(0.5, 1.0, 3)
+        draw = rng if name in _STREAM_EFFECTS else side
+        sign = draw.choice([-1.0, 1.0], 3)
+        frac = draw.uniform(0.5, 1.0, 3)
         coef = sign * frac * np.asarray(ec.magnitude, float)
         if ec.coefficients is not None:
             coef = np.asarray(ec.coefficients, float)
@@ -251,16 +269,34 @@ def sensor_mean(truth: SensorTruth, a_true_g: np.ndarray, temp_c: np.ndarray, t_
     if "temperature_scale" in on:
         # inv(diag(1 + k dT) M) l = inv(M) @ (l / (1 + k dT))
         a = a / (1.0 + d_temp[:, None] * (1e-6 * eff["temperature_scale"]))
+    if "temperature_cross" in on:
+        # M(T) = Q diag(s) U(T), U(T) = U + dT N (N strictly upper: the tempcos of nxy, nxz, nyz),
+        # so inv(M(T)) = inv(U(T)) diag(1/s) Q^T: rotate and unscale here, invert U(T) per row
+        q, r = canonical_qr(truth.matrix)
+        s = np.diag(r)
+        nt = r[[0, 0, 1], [1, 2, 2]] / s[[0, 0, 1]] + d_temp[:, None] * (1e-6 * eff["temperature_cross"])
+        w = (a @ q) / s  # diag(1/s) Q^T a, row-wise
+        y = w.copy()  # solve U(T) y = w (back substitution, unit diagonal)
+        y[:, 1] -= nt[:, 2] * y[:, 2]
+        y[:, 0] -= nt[:, 0] * y[:, 1] + nt[:, 1] * y[:, 2]
+        return y + truth.offset + _additive(truth, d_temp, t_s)
     # inv(M) @ a row-wise, as three broadcasts (much faster than a (n,3)@(3,3) matmul)
     raw = a[:, 0:1] * minv[:, 0]
     raw += a[:, 1:2] * minv[:, 1]
     raw += a[:, 2:3] * minv[:, 2]
     raw += truth.offset
+    return raw + _additive(truth, d_temp, t_s)
+
+
+def _additive(truth: SensorTruth, d_temp: np.ndarray, t_s: np.ndarray) -> np.ndarray | float:
+    """The offset effects (temperature bias, time drift), raw unit: (n, 3), or 0.0."""
+    eff, on = truth.effects, truth.enabled
+    out: np.ndarray | float = 0.0
     if "temperature_bias" in on:
-        raw = raw + 1e-3 * d_temp[:, None] * eff["temperature_bias"]
+        out = out + 1e-3 * d_temp[:, None] * eff["temperature_bias"]
     if "time_drift_bias" in on:
-        raw = raw + 1e-3 * (np.asarray(t_s, float)[:, None] / SECONDS_PER_DAY) * eff["time_drift_bias"]
-    return raw
+        out = out + 1e-3 * (np.asarray(t_s, float)[:, None] / SECONDS_PER_DAY) * eff["time_drift_bias"]
+    return out
 
 
 def read_out(truth: SensorTruth, raw_mean_g: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
