@@ -4,8 +4,9 @@ Hidden-effect pose sets are drawn as in ``tests/effectgen.py`` (insole-like pose
 days: on the foot at 28-33 degC, off the foot at 15-25 degC; a general affine sensor;
 one effect in its forward form on a random axis with a random sign). The **strength**
 of a case is the effect's coefficient as a fraction of the top of its realistic range
-(``EFFECT_RANGES``): strength 0.5 is 0.15 mg/degC of temperature bias, 112 ppm/degC of
-temperature scale, 0.3 mg/day of drift or 2 mg/g^2 of nonlinearity.
+(``EFFECT_RANGES``, ``SECONDARY_RANGES``): strength 0.5 is 0.15 mg/degC of temperature
+bias, 112 ppm/degC of temperature scale, 0.3 mg/day of drift, 2 mg/g^2 of nonlinearity or
+150 ppm/degC of cross-axis tempco.
 
 For every case, in the same run:
 
@@ -41,13 +42,15 @@ sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT))
 
 from bout_noise import wilson  # noqa: E402  (the 95 % Wilson interval the other diagnose bench prints)
-from effectgen import EFFECT_RANGES, hidden_effect_case  # noqa: E402
+from effectgen import EFFECT_RANGES, SECONDARY_RANGES, hidden_effect_case  # noqa: E402
 
 SEED_BASE = 31_000_000  # distinct from the seeds of tests/test_diagnose.py
+RANGES = {**EFFECT_RANGES, **SECONDARY_RANGES}  # every effect diagnose tests
 
 
 def bic_cause(poses: dict) -> str | None:
-    """Plain BIC over the base model and base + each effect (weighted LS, flat prior)."""
+    """Plain BIC over the base model and base + each effect diagnose tests, the secondary
+    cross-axis tempcos included (weighted LS, flat prior)."""
     from selfcal.fit import FitConfig, PoseData, datasheet_prior, fit_poses, pose_sigma
     from selfcal.models import ErrorModel
 
@@ -57,7 +60,7 @@ def bic_cause(poses: dict) -> str | None:
     cfg = FitConfig(sigma_floor_g=0.0)
     sigma = pose_sigma(mean, np.asarray(poses["sd"], float), np.asarray(poses["count"], float), cfg)
     best, best_bic = None, np.inf
-    for effect in (None, *EFFECT_RANGES):
+    for effect in (None, *RANGES):
         model = ErrorModel("affine9" if effect is None else f"affine9+{effect}", 25.0, 0.0)
         fit = fit_poses(model, data, prior=datasheet_prior(model, cfg, inflate=1e3), cfg=cfg)
         r, _ = model.residual_jac(fit.theta_u, mean, data.temp_c, data.t_s)
@@ -74,7 +77,7 @@ def run_case(job: tuple) -> dict:
 
     effect, strength, seed, n_poses, overrides = job
     rng = np.random.default_rng(seed)
-    magnitude = None if effect is None else strength * EFFECT_RANGES[effect][1]
+    magnitude = None if effect is None else strength * RANGES[effect][1]
     poses, truth = hidden_effect_case(rng, effect, magnitude, n_poses=n_poses)
     rep = diagnose_poses(poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"],
                          config={"diagnose": overrides} if overrides else None)
@@ -102,7 +105,7 @@ def main(argv=None) -> int:
     overrides = {k: float(v) for k, v in (x.split("=", 1) for x in args.set)}
     strengths = [float(x) for x in args.strengths.split(",")]
     jobs = [(e, s, SEED_BASE + 100_000 * k + 1000 * j + i, args.poses, overrides)
-            for k, e in enumerate(EFFECT_RANGES) for j, s in enumerate(strengths) for i in range(args.seeds)]
+            for k, e in enumerate(RANGES) for j, s in enumerate(strengths) for i in range(args.seeds)]
     jobs += [(None, 0.0, SEED_BASE + 900_000 + i, args.poses, overrides) for i in range(args.clean)]
     t0 = time.perf_counter()
     rows = []
@@ -117,10 +120,10 @@ def main(argv=None) -> int:
              f"cells: named / wrong / none, named rate [95 % Wilson interval]", "",
              "| effect | strength | magnitude | diagnose | BIC | diagnose >= BIC |", "|---|---:|---|---|---|---|"]
     units = {"temperature_bias": "mg/°C", "temperature_scale": "ppm/°C", "time_drift_bias": "mg/day",
-             "scale_nonlinearity": "mg/g²"}
+             "scale_nonlinearity": "mg/g²", "temperature_cross": "ppm/°C"}
     all_match = True
     at_012 = {}
-    for e in EFFECT_RANGES:
+    for e in RANGES:
         for s in strengths:
             cell = [r for r in rows if r["effect"] == e and r["strength"] == s]
             n = len(cell)
@@ -131,7 +134,7 @@ def main(argv=None) -> int:
             if abs(s - 0.12) < 1e-9:
                 at_012[e] = d[0] / n
             fmt = lambda t: f"{t[0]}/{t[1]}/{t[2]}, {t[0] / n:.0%} [{wilson(t[0], n)[0]:.0%}, {wilson(t[0], n)[1]:.0%}]"
-            lines.append(f"| {e} | {s:g} | {s * EFFECT_RANGES[e][1]:.3g} {units[e]} | {fmt(d)} | {fmt(b)} | "
+            lines.append(f"| {e} | {s:g} | {s * RANGES[e][1]:.3g} {units[e]} | {fmt(d)} | {fmt(b)} | "
                          f"{'yes' if ok else 'NO'} |")
     clean = [r for r in rows if r["effect"] is None]
     fa_d = sum(r["diagnose"] is not None for r in clean)
