@@ -161,3 +161,44 @@ def test_published_versions_do_not_depend_on_chunking():
         assert [(t, s) for t, s, _ in other] == [(t, s) for t, s, _ in runs[0]]
         for (_, _, a), (_, _, b) in zip(other, runs[0]):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_publication_rules_of_a_passing_refit():
+    """The rules of ``_hold`` one by one, on a calibrated published version: a version that
+    is only more certain may move the whole-sphere calibration by at most
+    publish_max_shift_mg (0.5 mg); a significant change is published however far it moves;
+    an improvement too small is held; the final flush publishes the most certain fit
+    however far it moves; a provisional version is replaced by any better one."""
+    from types import SimpleNamespace
+
+    from selfcal.calibrator import OnlineCalibrator
+    from selfcal.config import load_config
+    from selfcal.fit import predicted_sphere_rms_mg
+
+    cal = OnlineCalibrator(config=load_config(None), model="affine9")
+    theta0 = cal.model.nominal()
+    cal.current = {"theta_u": theta0.tolist(), "cov_u": np.eye(9).tolist(), "t_s": 0.0, "t_data_s": 0.0,
+                   "version": 1, "calibration": {"status": "calibrated", "predicted_sphere_rms_mg": 1.0}}
+    t_now = 10 * cal.sched_cfg.publish_min_interval_s
+    unit = np.zeros(9)
+    unit[0] = 1e-3  # 1 mg of x offset
+
+    def shift_mg(d):
+        return predicted_sphere_rms_mg(cal.model, theta0 + d, np.outer(d, d), t_now)
+
+    small, large = unit * 0.5 / shift_mg(unit), unit * 2.0 / shift_mg(unit)  # 0.5 and 2 mg over the sphere
+    loose = np.eye(9) * 1e-4  # (10 mg)^2: neither move is significant
+    better = {"status": "calibrated", "predicted_sphere_rms_mg": 0.5}  # 2x more certain
+
+    def hold(d, cov, calib, final=False):
+        return cal._hold(SimpleNamespace(theta_u=theta0 + d, cov_u=cov), calib, t_now, final)
+
+    assert abs(shift_mg(small) - 0.5) < 1e-9 and abs(shift_mg(large) - 2.0) < 1e-9
+    assert hold(small * 0.99, loose, better) is None  # more certain, moves 0.495 mg: published
+    reason = hold(large, loose, better)
+    assert reason is not None and "whole-sphere shift 2.000 mg" in reason  # more certain, moves 2 mg: held
+    assert hold(large, loose, better, final=True) is None  # the end of the stream: the most certain fit
+    assert hold(large, np.eye(9) * 1e-8, better) is None  # significant (0.1 mg sds): the data say it is off
+    assert hold(small * 0.5, loose, {"status": "calibrated", "predicted_sphere_rms_mg": 0.9}) is not None  # 1.11x
+    cal.current["calibration"]["status"] = "provisional"
+    assert hold(large, loose, {"status": "provisional", "predicted_sphere_rms_mg": 0.5}) is None
