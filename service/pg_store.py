@@ -75,14 +75,18 @@ _REFUSALS_SCHEMA = [
 # An ingest in one round trip: lock the device row (the same lock order as every writer),
 # then a duplicate, a conflicting resend or a seq jump is told apart from a new batch, which
 # is stored. Six statements from the client cost the API process ~6 round trips of psycopg
-# per batch; this is one. Returns ('stored' | 'duplicate' | 'conflict' | 'jump', highest seq).
+# per batch; this is one. Returns ('stored' | 'duplicate' | 'conflict' | 'jump' | 'error',
+# highest seq, error text). Its EXCEPTION block is a savepoint on the server: an error
+# other than a lock conflict (which fails the writer's group, as a storage error does)
+# undoes this batch only and comes back as 'error', so the client needs no savepoint.
 _INGEST_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_ingest(
         p_device TEXT, p_seq BIGINT, p_n INTEGER, p_at DOUBLE PRECISION, p_payload BYTEA, p_digest BYTEA,
-        p_max_jump BIGINT, OUT status TEXT, OUT top BIGINT)
+        p_max_jump BIGINT, OUT status TEXT, OUT top BIGINT, OUT error TEXT)
     LANGUAGE plpgsql AS $fn$
     DECLARE
         old_digest BYTEA;
     BEGIN
+      BEGIN
         INSERT INTO devices(device_id, created_at) VALUES (p_device, p_at) ON CONFLICT DO NOTHING;
         PERFORM 1 FROM devices WHERE device_id = p_device FOR UPDATE;
         SELECT digest INTO old_digest FROM batches WHERE device_id = p_device AND seq = p_seq;
@@ -106,6 +110,13 @@ _INGEST_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_ingest(
         END IF;
         UPDATE devices SET batches_stored = batches_stored + 1 WHERE device_id = p_device;
         status := 'stored';
+      EXCEPTION
+        WHEN deadlock_detected OR serialization_failure OR lock_not_available THEN
+            RAISE;
+        WHEN OTHERS THEN
+            status := 'error';
+            error := SQLSTATE || ': ' || SQLERRM;
+      END;
     END
     $fn$"""
 
@@ -322,9 +333,11 @@ class PostgresStore(GroupCommitStore):
     def submit_batch(self, device_id: str, seq: int, n_samples: int, payload: bytes, received_at: float,
                      digest: bytes, max_seq_jump: int) -> Future:
         def op(conn: Any) -> IngestResult:
-            status, top = conn.execute("SELECT status, top FROM selfcal_ingest(%s, %s, %s, %s, %s, %s, %s)",
-                                       (device_id, seq, n_samples, received_at, payload, digest,
-                                        max_seq_jump)).fetchone()
+            status, top, error = conn.execute(
+                "SELECT status, top, error FROM selfcal_ingest(%s, %s, %s, %s, %s, %s, %s)",
+                (device_id, seq, n_samples, received_at, payload, digest, max_seq_jump)).fetchone()
+            if status == "error":  # undone on the server; its neighbours in the group stand
+                raise RuntimeError(f"the database refused batch {seq} of device {device_id!r}: {error}")
             if status == "conflict":
                 raise SeqConflict(
                     f"seq {seq} of device {device_id!r} is stored with other content; a resent "
@@ -335,7 +348,7 @@ class PostgresStore(GroupCommitStore):
                     f"{device_id!r} (a corrupt seq would strand every later batch)")
             return IngestResult(duplicate=status == "duplicate")
 
-        op.one_statement = True  # type: ignore[attr-defined]  # its refusals raise in Python
+        op.one_statement = True  # type: ignore[attr-defined]  # a server-side savepoint; refusals raise in Python
         op.device_id = device_id  # type: ignore[attr-defined]
         return self._submit(op)
 

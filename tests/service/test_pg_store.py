@@ -91,3 +91,33 @@ def test_two_workers_lease_disjoint_devices_and_an_expired_lease_moves_on(two_st
     time.sleep(0.8)  # worker a stops renewing (killed): its leases expire
     assert sorted(b.acquire_leases("worker-b", 30.0, 10)) == sorted(got_a)
     assert a.lease_counts() == {"worker-b": 6}
+
+
+def test_a_batch_the_database_refuses_does_not_sink_its_group(two_stores):
+    """The ingest runs without a client savepoint (one round trip): a batch whose insert
+    fails on the server is undone by the function's own savepoint, refused alone, and
+    the batches committed with it in the same group are stored."""
+    import psycopg
+
+    a, _ = two_stores
+    with psycopg.connect(a.url, autocommit=True) as conn:  # a fault only seq 13 meets
+        conn.execute("CREATE FUNCTION refuse_13() RETURNS trigger LANGUAGE plpgsql AS $$ BEGIN "
+                     "IF NEW.seq = 13 THEN RAISE EXCEPTION 'seq 13 refused by a test trigger'; END IF; "
+                     "RETURN NEW; END $$")
+        conn.execute("CREATE TRIGGER refuse_13 BEFORE INSERT ON batches FOR EACH ROW EXECUTE FUNCTION refuse_13()")
+    try:
+        futs = [_ingest(a, "dev-g", q) for q in range(10, 17)]  # queued together: one or a few groups
+        outcomes = []
+        for f in futs:
+            try:
+                outcomes.append(f.result(timeout=30).duplicate)
+            except Exception as exc:  # noqa: BLE001 - the refusal under test
+                outcomes.append(str(exc))
+        assert outcomes[:3] == [False] * 3 and outcomes[4:] == [False] * 3, outcomes
+        assert "seq 13 refused by a test trigger" in outcomes[3]
+        dev, _ = a.current("dev-g")
+        assert dev.batches_stored == 6 and a.backlog() == 6
+    finally:
+        with psycopg.connect(a.url, autocommit=True) as conn:
+            conn.execute("DROP TRIGGER refuse_13 ON batches")
+            conn.execute("DROP FUNCTION refuse_13()")
