@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -33,7 +32,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "bench"))
 sys.path.insert(0, str(REPO / "tests"))
 
-from service_load import KEY, Conn, encode, insole_stream  # noqa: E402
+from service_load import KEY, Conn, encode, free_port, insole_stream, wait_up  # noqa: E402
 
 
 def cpu_s(pid: int) -> float:
@@ -54,16 +53,8 @@ def cpu_s(pid: int) -> float:
     return total
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def run(backend: str, db: str, parser: str, args) -> dict[str, float]:
     import asyncio
-
-    import httpx
 
     port = free_port()
     env = dict(os.environ, SELFCAL_API_KEYS=f"{KEY}=ingest+read", SELFCAL_HTTP_PARSER=parser)
@@ -72,12 +63,7 @@ def run(backend: str, db: str, parser: str, args) -> dict[str, float]:
         cmd += ["--no-refit"]
     server = subprocess.Popen(cmd, env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
     try:
-        for _ in range(300):
-            try:
-                if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                time.sleep(0.1)
+        wait_up(port)
         rng = np.random.default_rng(args.seed)
         stream = insole_stream(rng, 400 * 64)
         bodies = []

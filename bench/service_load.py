@@ -291,6 +291,21 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def wait_up(port: int, timeout_s: float = 90.0) -> None:
+    """Wait until the server on ``port`` answers /healthz (RuntimeError after ``timeout_s``)."""
+    import httpx
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.1)
+    raise RuntimeError(f"server on port {port} did not come up")
+
+
 def metric_values(port: int) -> dict[str, float]:
     import httpx
 
@@ -347,14 +362,7 @@ def main() -> int:
                 env=env, cwd=str(REPO), stderr=subprocess.DEVNULL,
             )
             try:
-                import httpx
-
-                for _ in range(300):
-                    try:
-                        if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
-                            break
-                    except httpx.HTTPError:
-                        time.sleep(0.1)
+                wait_up(port)
                 print(f"\n[{fmt}] devices  offered/s  sustained/s  req/s  GET p50 ms  GET p99 ms  errors")
                 load = subprocess.Popen(
                     [sys.executable, __file__, "--load-only", "--port", str(port), "--devices", args.devices,
