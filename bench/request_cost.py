@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -32,7 +31,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "bench"))
 sys.path.insert(0, str(REPO / "tests"))
 
-from service_load import KEY, Conn, encode, free_port, insole_stream, wait_up  # noqa: E402
+from service_load import KEY, Conn, encode, free_port, insole_stream, stop_server, wait_up  # noqa: E402
 
 
 def cpu_s(pid: int) -> float:
@@ -97,11 +96,7 @@ def run(backend: str, db: str, parser: str, args) -> dict[str, float]:
 
         return asyncio.run(main())
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_server(server)
 
 
 def main() -> int:

@@ -306,6 +306,15 @@ def wait_up(port: int, timeout_s: float = 90.0) -> None:
     raise RuntimeError(f"server on port {port} did not come up")
 
 
+def stop_server(server: subprocess.Popen) -> None:
+    """SIGTERM, then a kill after 30 s."""
+    server.send_signal(signal.SIGTERM)
+    try:
+        server.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        server.kill()
+
+
 def metric_values(port: int) -> dict[str, float]:
     import httpx
 
@@ -395,11 +404,7 @@ def main() -> int:
                       f"db commits {m.get('selfcal_db_commits_total', 0):.0f} for "
                       f"{m.get('selfcal_db_writes_total', 0):.0f} writes")
             finally:
-                server.send_signal(signal.SIGTERM)
-                try:
-                    server.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    server.kill()
+                stop_server(server)
     return 0
 
 
