@@ -62,6 +62,11 @@ class GroupCommitStore(Storage):
         aborted: an op without its own savepoint then fails its group)."""
         return False
 
+    def _transaction_aborted(self, conn: Any) -> bool:
+        """Whether the writer's transaction can no longer commit (after a database error);
+        True unless the dialect can tell."""
+        return True
+
     def identity_problem(self) -> str | None:
         """Why the database is no longer the one opened, or None (SQLite checks its file)."""
         return None
@@ -139,9 +144,10 @@ class GroupCommitStore(Storage):
                         try:
                             value = fn(conn)
                         except Exception as exc:
-                            if self._is_storage_error(exc) or self._is_database_error(exc):
+                            if self._is_storage_error(exc) or (self._is_database_error(exc)
+                                                               and self._transaction_aborted(conn)):
                                 raise
-                            results.append((fut, False, exc))  # refused in Python: nothing to undo
+                            results.append((fut, False, exc))  # refused before the server: nothing to undo
                         else:
                             results.append((fut, True, value))
                         continue

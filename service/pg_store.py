@@ -277,6 +277,13 @@ class PostgresStore(GroupCommitStore):
 
         return isinstance(exc, psycopg.Error)
 
+    def _transaction_aborted(self, conn: Any) -> bool:
+        # an error the driver raised before sending (e.g. a NUL byte in a text value)
+        # leaves the transaction open: only that op fails
+        from psycopg.pq import TransactionStatus
+
+        return conn.info.transaction_status != TransactionStatus.INTRANS
+
     def _probe_op(self, conn: Any) -> None:
         conn.execute("INSERT INTO meta(key, value) VALUES ('ready_probe', %s) "
                      "ON CONFLICT (key) DO UPDATE SET value = EXCLUDED.value", (repr(time.time()),))

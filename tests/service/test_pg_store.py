@@ -121,3 +121,16 @@ def test_a_batch_the_database_refuses_does_not_sink_its_group(two_stores):
         with psycopg.connect(a.url, autocommit=True) as conn:
             conn.execute("DROP TRIGGER refuse_13 ON batches")
             conn.execute("DROP FUNCTION refuse_13()")
+
+
+def test_a_batch_the_driver_refuses_before_sending_fails_alone(two_stores):
+    """A value psycopg refuses before it reaches the server (a NUL byte in a text field,
+    which the API's device-id pattern never lets through) fails that ingest alone: the
+    transaction is still open, so the rest of its group commits."""
+    a, _ = two_stores
+    futs = [_ingest(a, "dev-n", 0), _ingest(a, "dev-\x00", 0), _ingest(a, "dev-n", 1)]
+    assert not futs[0].result(timeout=30).duplicate and not futs[2].result(timeout=30).duplicate
+    with pytest.raises(Exception, match="NUL"):
+        futs[1].result(timeout=30)
+    dev, _ = a.current("dev-n")
+    assert dev.batches_stored == 2
