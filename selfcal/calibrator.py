@@ -56,10 +56,9 @@ from selfcal.fit import (
     predicted_sphere_rms_mg,
     variance_components,
 )
-from selfcal.models import ErrorModel, Normalizer
+from selfcal.models import SECONDARY_EFFECTS, ErrorModel, Normalizer
 from selfcal.poses import PoseConfig, PoseStore
 from selfcal.selection import (
-    SECONDARY_EFFECTS,
     Comparison,
     SelectionConfig,
     change_record,
@@ -499,8 +498,8 @@ class OnlineCalibrator:
         primary = [x for x in supported if x.effect not in SECONDARY_EFFECTS]
         best = max(primary or supported, key=lambda x: x.gain_rel)
         if primary:
-            strong = [x for x in supported if x.effect in SECONDARY_EFFECTS
-                      and x.wald_chi2 - max(p.wald_chi2 for p in primary) >= c.secondary_margin_chi2]
+            bar = max(p.wald_chi2 for p in primary) + c.secondary_margin_chi2
+            strong = [x for x in supported if x.effect in SECONDARY_EFFECTS and x.wald_chi2 >= bar]
             if strong:
                 best = max(strong, key=lambda x: x.gain_rel)
         return self._switch(ErrorModel(best.large, self.model.temp_ref_c, self._candidate(best.effect).t_ref_s),

@@ -67,13 +67,9 @@ from scipy import stats
 from selfcal.boutnoise import BoutNoise, Bouts, estimate_bout_noise, find_bouts
 from selfcal.errors import InputError
 from selfcal.fit import FitConfig, GuardConfig, PoseData, datasheet_prior, fit_poses, implausible, pose_sigma
-from selfcal.models import EFFECT_PARAMS, ErrorModel, Normalizer
+from selfcal.models import EFFECT_PARAMS, SECONDARY_EFFECTS, ErrorModel, Normalizer
 
 EFFECTS = tuple(EFFECT_PARAMS)
-#: Candidates named only when they beat every supported primary candidate by
-#: ``separable_dchi2``: a cross-axis tempco into z looks like a temperature bias on
-#: mostly flat poses, and a bias is the far more common effect (docs/diagnose.md).
-SECONDARY_EFFECTS = ("temperature_cross",)
 
 #: Physical unit and factor (from normalised parameters, g-based) for reporting estimates.
 EFFECT_UNITS = {
@@ -266,8 +262,8 @@ def _not_testable(effect: str, temp_c: np.ndarray | None, t_s: np.ndarray, cfg: 
                   base: str = "affine9") -> str | None:
     """Why a candidate effect cannot be tested on these poses (temperature, time span) with
     the ``base`` model, or None."""
-    if effect == "temperature_cross" and base != "affine9":
-        return f"not testable: {base} has no cross-axis terms"
+    if not ErrorModel(base).takes(effect):
+        return f"not testable: {base} takes no {effect}"
     if effect.startswith("temperature") and temp_c is None:
         return "not testable: the recording has no temperature"
     if effect.startswith("temperature") and np.ptp(temp_c) < cfg.min_temp_range_c:

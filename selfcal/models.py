@@ -58,6 +58,11 @@ EFFECT_PARAMS = {
     "temperature_cross": ("tnxy", "tnxz", "tnyz"),
 }
 
+#: Effects diagnose and online selection take only when they clearly beat the others: a
+#: cross-axis tempco into z looks like a temperature bias on mostly flat poses, and a
+#: bias is the far more common effect (docs/diagnose.md).
+SECONDARY_EFFECTS = ("temperature_cross",)
+
 #: Units of each parameter family, for documentation and reports ("raw" = recording unit).
 PARAM_UNITS = {
     "b": "raw", "s": "g/raw", "n": "1", "psi": "rad", "theta": "rad", "phi": "rad",
@@ -175,9 +180,13 @@ class ErrorModel:
         return theta
 
     def takes(self, effect: str) -> bool:
-        """Whether ``effect`` can be added to this base model (cross-axis terms need affine9)."""
-        return effect in EFFECT_PARAMS and self.base != "seed9" and (
-            effect != "temperature_cross" or self.base == "affine9")
+        """Whether ``effect`` can be added to this base model (the rules of
+        :func:`parse_model_name`: seed9 takes none, cross-axis terms need affine9)."""
+        try:
+            parse_model_name(f"{self.base}+{effect}")
+        except InputError:
+            return False
+        return True
 
     def with_effects(self, effects: tuple[str, ...]) -> "ErrorModel":
         """The same base model with a different set of effects."""

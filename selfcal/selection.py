@@ -42,12 +42,6 @@ from selfcal.fit import FitConfig, FitResult, PoseData, Prior, fit_poses
 from selfcal.models import EFFECT_PARAMS, ErrorModel
 
 
-#: Effects switched in only when no primary effect is supported in the same check, or when
-#: their evidence beats the best primary's by ``secondary_margin_chi2`` (the cross-axis
-#: tempcos look like a temperature bias on mostly flat poses; docs/diagnose.md).
-SECONDARY_EFFECTS = ("temperature_cross",)
-
-
 class SelectionConfig(BaseModel):
     """The ``[selection]`` section: when and how the online calibrator changes its model."""
 

@@ -57,14 +57,9 @@ class GroupCommitStore(Storage):
         """True if ``exc`` means the database cannot write (the whole group fails)."""
         raise NotImplementedError
 
-    def _is_database_error(self, exc: BaseException) -> bool:
-        """True if ``exc`` came from the database driver (after it, the transaction may be
-        aborted: an op without its own savepoint then fails its group)."""
-        return False
-
     def _transaction_aborted(self, conn: Any) -> bool:
-        """Whether the writer's transaction can no longer commit (after a database error);
-        True unless the dialect can tell."""
+        """Whether the writer's transaction can no longer commit, after an op without its
+        own savepoint raised (a dialect that runs such ops tells; otherwise assume so)."""
         return True
 
     def identity_problem(self) -> str | None:
@@ -144,10 +139,9 @@ class GroupCommitStore(Storage):
                         try:
                             value = fn(conn)
                         except Exception as exc:
-                            if self._is_storage_error(exc) or (self._is_database_error(exc)
-                                                               and self._transaction_aborted(conn)):
+                            if self._is_storage_error(exc) or self._transaction_aborted(conn):
                                 raise
-                            results.append((fut, False, exc))  # refused before the server: nothing to undo
+                            results.append((fut, False, exc))  # refused in Python or by the driver: nothing to undo
                         else:
                             results.append((fut, True, value))
                         continue

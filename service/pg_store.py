@@ -272,14 +272,9 @@ class PostgresStore(GroupCommitStore):
 
         return isinstance(exc, (psycopg.OperationalError, psycopg.InterfaceError, psycopg.InternalError))
 
-    def _is_database_error(self, exc: BaseException) -> bool:
-        import psycopg
-
-        return isinstance(exc, psycopg.Error)
-
     def _transaction_aborted(self, conn: Any) -> bool:
-        # an error the driver raised before sending (e.g. a NUL byte in a text value)
-        # leaves the transaction open: only that op fails
+        # a refusal raised in Python, or by the driver before sending (e.g. a NUL byte in a
+        # text value), leaves the transaction open: only that op fails
         from psycopg.pq import TransactionStatus
 
         return conn.info.transaction_status != TransactionStatus.INTRANS
