@@ -62,6 +62,7 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
     server = subprocess.Popen(cmd, env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
     workers = [subprocess.Popen([sys.executable, "-m", "selfcal.cli", "worker", "--db", db, "--status-every-s", "0",
                                  "--threads", str(args.worker_threads), "--nice", str(args.worker_nice),
+                                 *(["--idle"] if args.worker_idle else []),
                                  "--log-level", "warning"], env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
                for _ in range(refit_workers if db.startswith("postgresql") else 0)]
     backlog: list[tuple[float, float, float]] = []  # (t, oldest age s, batches)
@@ -115,6 +116,7 @@ def main() -> int:
     ap.add_argument("--procs", default="1,2,4", help="API process counts on PostgreSQL")
     ap.add_argument("--refit-workers", type=int, default=1, help="selfcal worker processes on PostgreSQL")
     ap.add_argument("--worker-nice", type=int, default=0, help="selfcal worker --nice N (PostgreSQL)")
+    ap.add_argument("--worker-idle", action="store_true", help="selfcal worker --idle (SCHED_IDLE, Linux)")
     ap.add_argument("--worker-threads", type=int, default=1, help="refit threads of each worker (and of SQLite's process)")
     ap.add_argument("--format", choices=["json", "binary"], default="binary")
     ap.add_argument("--no-sqlite", action="store_true")
@@ -134,6 +136,7 @@ def main() -> int:
         configs = [] if args.no_sqlite else [("sqlite, 1 process (embedded refits)", f"{tmp}/scale.db", 1)]
         for n in [int(x) for x in args.procs.split(",")]:
             nice = f" (nice {args.worker_nice})" if args.worker_nice and args.refit_workers else ""
+            nice += " (idle)" if args.worker_idle and args.refit_workers else ""
             configs.append((f"postgresql, {n} API + {args.refit_workers} worker{nice}",
                             pg.create_database(f"scale_{n}"), n))
         for label, db, n in configs:

@@ -94,3 +94,19 @@ def test_version_and_closed_pipe():
     q = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, env=env, timeout=120)
     assert q.stdout == '{"format":'[:10] or len(q.stdout) == 10
     assert "Traceback" not in q.stderr and "BrokenPipe" not in q.stderr, q.stderr
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is Linux-only")
+def test_worker_idle_puts_the_refit_threads_under_sched_idle():
+    """``selfcal worker --idle``: the process, and every thread it starts afterwards, run
+    under SCHED_IDLE (checked in a child process: the policy cannot be undone unprivileged)."""
+    code = ("import os, threading\n"
+            "from selfcal.commands.worker import lower_priority\n"
+            "assert os.sched_getscheduler(0) != os.SCHED_IDLE\n"
+            "lower_priority(3, True)\n"
+            "seen = []\n"
+            "t = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0))); t.start(); t.join()\n"
+            "print(os.sched_getscheduler(0) == os.SCHED_IDLE, seen == [os.SCHED_IDLE], os.nice(0))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["True", "True", str(3 + os.nice(0))]

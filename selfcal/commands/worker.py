@@ -20,12 +20,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--nice", type=int, default=0, metavar="N",
                         help="lower this process's CPU priority by N (0-19): on a machine shared with API "
                              "processes, reads then go first and refits take what is left")
+    parser.add_argument("--idle", action="store_true",
+                        help="Linux: run the refits under SCHED_IDLE, i.e. only on CPU time that nothing "
+                             "else wants (stronger than --nice 19; an API process on the same cores is "
+                             "never kept waiting by a refit)")
     parser.add_argument("--status-every-s", type=float, default=10.0,
                         help="print a status line this often (0: never)")
     parser.add_argument("--log-format", default=None, choices=["text", "json"], help="json: structured logs")
     parser.add_argument(
         "--log-level", default=None, choices=["critical", "error", "warning", "info", "debug"], help="log level"
     )
+
+
+def lower_priority(nice: int, idle: bool) -> None:
+    """Lower this process's CPU priority before any thread starts (threads inherit it).
+
+    nice : int, 0-19 — added to the process's nice value
+    idle : bool — Linux SCHED_IDLE: scheduled only when no other task wants the CPU
+    """
+    import os
+
+    from selfcal.errors import InputError
+
+    if idle:
+        if not hasattr(os, "SCHED_IDLE"):
+            raise InputError("--idle: SCHED_IDLE is a Linux scheduling policy; this system has none (use --nice)")
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    if nice:
+        os.nice(nice)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -49,10 +71,7 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 <= args.nice <= 19:
         raise InputError(f"--nice {args.nice}: must be 0 to 19")
-    if args.nice:
-        import os
-
-        os.nice(args.nice)
+    lower_priority(args.nice, args.idle)
     if not is_postgres_url(args.db):
         raise InputError(f"--db {args.db}: a refit worker needs a shared postgresql:// database "
                          "(with a SQLite file, `selfcal serve` runs the refits itself)")
