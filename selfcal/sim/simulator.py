@@ -329,10 +329,17 @@ class Simulation:
         # mean true temperature: 9-point average over the window
         frac = np.linspace(0.0, 1.0, 9)
         pts = w0[:, None] + frac[None, :] * (w1 - w0 - 1)[:, None]
-        segp = np.searchsorted(s.start, pts, side="right") - 1
-        tau = (pts - s.start[segp]) / rate
-        temp_pts, _ = temperature_at(tau, s.temp0_c[segp], s.heat0_c[segp], s.temp_target_c[segp],
-                                     s.heat_target_c[segp], s.tau_t_s[segp], s.tau_h_s[segp], s.on_foot[segp])
+        # nearly every window lies in one segment: its constants are gathered once and
+        # broadcast over the 9 points (the same values, elementwise the same arithmetic)
+        ends = np.searchsorted(s.start, pts[:, [0, -1]], side="right") - 1
+        one = ends[:, 0] == ends[:, 1]
+        temp_pts = np.empty(pts.shape)
+        for rows, segp in ((one, ends[one, :1]),
+                           (~one, np.searchsorted(s.start, pts[~one], side="right") - 1)):
+            tau = (pts[rows] - s.start[segp]) / rate
+            temp_pts[rows], _ = temperature_at(tau, s.temp0_c[segp], s.heat0_c[segp], s.temp_target_c[segp],
+                                               s.heat_target_c[segp], s.tau_t_s[segp], s.tau_h_s[segp],
+                                               s.on_foot[segp])
         temp_true = temp_pts.mean(axis=1)
         t_start = w0 / rate
         dur = (w1 - w0) / rate

@@ -41,7 +41,23 @@ _COLUMNS = (
 
 def _draw(d: LogNormalDuration, rng: np.random.Generator, size: int | None = None) -> np.ndarray | float:
     x = d.median_s * np.exp(np.log(d.gsd) * rng.standard_normal(size))
+    if size is None:  # one draw: min/max is np.clip's value without its per-call cost
+        return float(min(max(x, d.min_s), d.max_s))
     return np.clip(x, d.min_s, d.max_s)
+
+
+def _cdf(probs) -> np.ndarray:
+    """Cumulative distribution of (unnormalised) probabilities, as Generator.choice builds it."""
+    p = np.asarray(probs, float)
+    cdf = (p / p.sum()).cumsum()
+    cdf /= cdf[-1]
+    return cdf
+
+
+def _pick(cdf: np.ndarray, rng: np.random.Generator) -> int:
+    """``rng.choice(len(cdf), p=...)`` for a precomputed :func:`_cdf`: the same draw from
+    the same stream (one uniform, searched in the cdf), without choice's checks per call."""
+    return int(cdf.searchsorted(rng.random(), side="right"))
 
 
 @dataclass
@@ -142,6 +158,13 @@ class _Builder:
         self.next_still = 0
         p = cfg.posture
         self.shoe_pitch = np.deg2rad(p.shoe_pitch_deg + p.shoe_pitch_sd_deg * rng.standard_normal())
+        # choice tables, built once (the planner draws hundreds of thousands of postures)
+        self._off_cdf = _cdf([p.off_flat_p, p.off_side_p, p.off_upside_down_p])
+        self._sit_cdf = _cdf([p.sit_flat_p, p.sit_heel_p, p.sit_toes_p, p.sit_crossed_p])
+        a = cfg.activity
+        self._next_state = {name: (list(row), _cdf([row[k] for k in row])) for name, row in
+                            (("sit", a.from_sit), ("stand", a.from_stand), ("walk", a.from_walk),
+                             ("stairs", a.from_stairs))}
 
     # -- primitives -------------------------------------------------------------
     def still(self, dur: float, act: int, orient: tuple[float, float], sd_g: float, load) -> None:
@@ -188,8 +211,7 @@ class _Builder:
     # -- postures -----------------------------------------------------------------
     def off_orientation(self) -> tuple[float, float]:
         p, rng = self.cfg.posture, self.rng
-        probs = np.array([p.off_flat_p, p.off_side_p, p.off_upside_down_p], float)
-        k = rng.choice(3, p=probs / probs.sum())
+        k = _pick(self._off_cdf, rng)
         tilt = np.deg2rad(p.off_tilt_sd_deg) * rng.standard_normal(2)
         if k == 0:
             return (self.shoe_pitch + tilt[0], tilt[1])
@@ -207,8 +229,7 @@ class _Builder:
 
     def sit_posture(self) -> tuple[tuple[float, float], float, tuple]:
         p, rng = self.cfg.posture, self.rng
-        probs = np.array([p.sit_flat_p, p.sit_heel_p, p.sit_toes_p, p.sit_crossed_p], float)
-        k = rng.choice(4, p=probs / probs.sum())
+        k = _pick(self._sit_cdf, rng)
         f = self.cfg.pressure.sit_factor
         sway = p.sit_sway_sd_mg * 1e-3
         if k == 0:
@@ -222,7 +243,7 @@ class _Builder:
             orient = (np.deg2rad(rng.uniform(*p.sit_toes_pitch_deg)), np.deg2rad(5 * rng.standard_normal()))
             load = f * np.array([0.0, 0.2, 1.8, 1.5])
         else:
-            roll = np.deg2rad(rng.uniform(*p.sit_crossed_roll_deg)) * rng.choice([-1, 1])
+            roll = np.deg2rad(rng.uniform(*p.sit_crossed_roll_deg)) * (-1, 1)[int(rng.integers(0, 2))]
             orient = (np.deg2rad(rng.uniform(-40, 0)), roll)
             load = np.zeros(4)
             sway = p.sit_crossed_sway_sd_mg * 1e-3
@@ -289,7 +310,6 @@ class _Builder:
         rng = self.rng
         end = self.t + total
         state = "stand"
-        rows = {"sit": a.from_sit, "stand": a.from_stand, "walk": a.from_walk, "stairs": a.from_stairs}
         climb = 1.0
         while self.t < end - 1e-9:
             left = end - self.t
@@ -303,10 +323,8 @@ class _Builder:
             else:
                 climb = -climb if rng.uniform() < 0.8 else climb  # mostly up then down
                 self.gait(min(float(_draw(a.stairs, rng)), left), STAIRS, climb)
-            row = rows[state]
-            names = list(row)
-            pr = np.array([row[k] for k in names], float)
-            state = names[rng.choice(len(names), p=pr / pr.sum())]
+            names, cdf = self._next_state[state]
+            state = names[_pick(cdf, rng)]
 
 
 def make_schedule(config: SimConfig, rng: np.random.Generator, days: float, rate_hz: float | None = None) -> Schedule:
