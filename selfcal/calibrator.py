@@ -231,7 +231,16 @@ class OnlineCalibrator:
             return []
         # no model-dependent gate: the poses that could refute the model are never filtered by it
         windows = self.detector.feed(t_s, acc_g, temp_c=temp_c, pressure_kpa=pressure_kpa, to_cal=None)
-        self.n_samples += int(t_s.size)
+        return self.feed_windows(windows, int(t_s.size))
+
+    def feed_windows(self, windows, n_samples: int = 0) -> list[dict]:
+        """Feed still windows that a detector with this calibrator's ``[detector]`` settings
+        found (``StillWindows``); returns the refit outcomes. ``feed_samples`` is the detector
+        followed by this; a replay that runs two calibrators on one stream detects once.
+
+        n_samples : int — samples the windows were detected in (counted in ``n_samples``)
+        """
+        self.n_samples += int(n_samples)
         # the calibrator's clock is the still windows' (not the chunk's last sample): refit
         # times, and so every published version, do not depend on how a stream is chunked
         return self._take_windows(windows)

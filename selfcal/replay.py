@@ -208,6 +208,7 @@ def replay(
     base_name = ErrorModel(model).base
     last_cal = cal.calibration()
     sample_iter = sim.iter_samples(chunk_s=3600) if level == "samples" else None
+    shared_detector = cal.det_cfg == online.det_cfg
     pending = None
     for b in boundaries:
         if b <= done_until + 1e-9:
@@ -233,11 +234,19 @@ def replay(
                 if chunk.t_s[0] >= hi:
                     pending = chunk
                     break
-                events += cal.feed_samples(chunk.t_s, chunk.acc_g, chunk.temp_c, chunk.pressure_kpa)
-                if first_calibrated_h is None:
-                    online.feed_samples(chunk.t_s, chunk.acc_g, chunk.temp_c, chunk.pressure_kpa)
-                    if online.status == "calibrated":
-                        first_calibrated_h = float(chunk.t_s[-1]) / 3600.0
+                if first_calibrated_h is None and shared_detector:
+                    # one detection for both calibrators (the same [detector] settings): the
+                    # as-shipped one gets the protocol calibrator's windows
+                    windows = cal.detector.feed(chunk.t_s, chunk.acc_g, temp_c=chunk.temp_c,
+                                                pressure_kpa=chunk.pressure_kpa, to_cal=None)
+                    events += cal.feed_windows(windows, len(chunk.t_s))
+                    online.feed_windows(windows, len(chunk.t_s))
+                else:
+                    events += cal.feed_samples(chunk.t_s, chunk.acc_g, chunk.temp_c, chunk.pressure_kpa)
+                    if first_calibrated_h is None:
+                        online.feed_samples(chunk.t_s, chunk.acc_g, chunk.temp_c, chunk.pressure_kpa)
+                if first_calibrated_h is None and online.status == "calibrated":
+                    first_calibrated_h = float(chunk.t_s[-1]) / 3600.0
         cal.t_last_s = hi
         if refit_every_days > 0:
             events = [cal.refit()]

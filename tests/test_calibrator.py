@@ -1,4 +1,5 @@
 import json
+import re
 
 import numpy as np
 
@@ -202,3 +203,28 @@ def test_publication_rules_of_a_passing_refit():
     assert hold(small * 0.5, loose, {"status": "calibrated", "predicted_sphere_rms_mg": 0.9}) is not None  # 1.11x
     cal.current["calibration"]["status"] = "provisional"
     assert hold(large, loose, {"status": "provisional", "predicted_sphere_rms_mg": 0.5}) is None
+
+
+def test_windows_detected_elsewhere_give_the_same_versions():
+    """``feed_windows`` with the windows of a separate detector (same settings) is
+    ``feed_samples``: a replay that runs two calibrators on one stream detects once."""
+    from selfcal.detect import StaticDetector
+
+    rng = np.random.default_rng(41)
+    truth = random_truth(rng)
+    t, raw, _ = sample_stream(rng, A9, truth, spread_directions(rng, 40))
+    direct = OnlineCalibrator()
+    shared = OnlineCalibrator()
+    detector = StaticDetector(shared.det_cfg)
+    ev_direct, ev_shared = [], []
+    for i in range(0, len(t), 500):
+        sl = slice(i, i + 500)
+        ev_direct += direct.feed_samples(t[sl], raw[sl])
+        ev_shared += shared.feed_windows(detector.feed(t[sl], raw[sl], to_cal=None), len(t[sl]))
+    published = [e for e in ev_direct if e["published"]]
+    assert len(published) >= 2
+    def text(events):  # everything but the wall-clock timings
+        return re.sub(r'"fit_ms": [0-9.e+-]+', "", json.dumps(events, sort_keys=True, default=str))
+
+    assert text(ev_direct) == text(ev_shared)
+    assert shared.n_samples == direct.n_samples == len(t)
