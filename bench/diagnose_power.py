@@ -4,9 +4,10 @@ Hidden-effect pose sets are drawn as in ``tests/effectgen.py`` (insole-like pose
 days: on the foot at 28-33 degC, off the foot at 15-25 degC; a general affine sensor;
 one effect in its forward form on a random axis with a random sign). The **strength**
 of a case is the effect's coefficient as a fraction of the top of its realistic range
-(``EFFECT_RANGES``, ``SECONDARY_RANGES``): strength 0.5 is 0.15 mg/degC of temperature
-bias, 112 ppm/degC of temperature scale, 0.3 mg/day of drift, 2 mg/g^2 of nonlinearity or
-150 ppm/degC of cross-axis tempco.
+(``EFFECT_RANGES``, ``SECONDARY_RANGES``, ``EVENT_RANGES``): strength 0.5 is 0.15 mg/degC
+of temperature bias, 112 ppm/degC of temperature scale, 0.3 mg/day of drift, 2 mg/g^2 of
+nonlinearity, 150 ppm/degC of cross-axis tempco or a bias step of 2.5 mg (at a time in
+the middle half of the 8 days).
 
 For every case, in the same run:
 
@@ -42,15 +43,17 @@ sys.path.insert(0, str(ROOT / "bench"))
 sys.path.insert(0, str(ROOT))
 
 from bout_noise import wilson  # noqa: E402  (the 95 % Wilson interval the other diagnose bench prints)
-from effectgen import EFFECT_RANGES, SECONDARY_RANGES, hidden_effect_case  # noqa: E402
+from effectgen import EFFECT_RANGES, EVENT_RANGES, SECONDARY_RANGES, hidden_effect_case  # noqa: E402
 
 SEED_BASE = 31_000_000  # distinct from the seeds of tests/test_diagnose.py
-RANGES = {**EFFECT_RANGES, **SECONDARY_RANGES}  # every effect diagnose tests
+RANGES = {**EFFECT_RANGES, **SECONDARY_RANGES, **EVENT_RANGES}  # every effect diagnose tests
 
 
 def bic_cause(poses: dict) -> str | None:
     """Plain BIC over the base model and base + each effect diagnose tests, the secondary
-    cross-axis tempcos included (weighted LS, flat prior)."""
+    cross-axis tempcos included (weighted LS, flat prior). The bias step is fitted at each
+    of diagnose's candidate times, its time counted as one more parameter."""
+    from selfcal.diagnosis import DiagnoseConfig, step_times
     from selfcal.fit import FitConfig, PoseData, datasheet_prior, fit_poses, pose_sigma
     from selfcal.models import ErrorModel
 
@@ -60,12 +63,15 @@ def bic_cause(poses: dict) -> str | None:
     cfg = FitConfig(sigma_floor_g=0.0)
     sigma = pose_sigma(mean, np.asarray(poses["sd"], float), np.asarray(poses["count"], float), cfg)
     best, best_bic = None, np.inf
-    for effect in (None, *RANGES):
-        model = ErrorModel("affine9" if effect is None else f"affine9+{effect}", 25.0, 0.0)
+    models = [(e, ErrorModel("affine9" if e is None else f"affine9+{e}", 25.0, 0.0), 0)
+              for e in (None, *RANGES) if e not in EVENT_RANGES]
+    models += [("bias_step", ErrorModel("affine9+bias_step", 25.0, 0.0, tau), 1)
+               for tau in step_times(np.asarray(poses["t_s"], float), DiagnoseConfig())]
+    for effect, model, extra in models:
         fit = fit_poses(model, data, prior=datasheet_prior(model, cfg, inflate=1e3), cfg=cfg)
         r, _ = model.residual_jac(fit.theta_u, mean, data.temp_c, data.t_s)
         wrss = float(np.sum((r / sigma) ** 2))
-        bic = n * np.log(wrss / n) + model.n_params * np.log(n)
+        bic = n * np.log(wrss / n) + (model.n_params + extra) * np.log(n)
         if bic < best_bic:
             best, best_bic = effect, bic
     return best
@@ -120,7 +126,7 @@ def main(argv=None) -> int:
              f"cells: named / wrong / none, named rate [95 % Wilson interval]", "",
              "| effect | strength | magnitude | diagnose | BIC | diagnose >= BIC |", "|---|---:|---|---|---|---|"]
     units = {"temperature_bias": "mg/°C", "temperature_scale": "ppm/°C", "time_drift_bias": "mg/day",
-             "scale_nonlinearity": "mg/g²", "temperature_cross": "ppm/°C"}
+             "scale_nonlinearity": "mg/g²", "temperature_cross": "ppm/°C", "bias_step": "mg"}
     all_match = True
     at_012 = {}
     for e in RANGES:

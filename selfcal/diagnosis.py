@@ -23,9 +23,14 @@ Given still poses (a poses table, or the still windows of a samples recording):
    discrepancy. When the windows are not correlated within bouts (a chi-square test), the
    model has no correlated part and everything below is as with independent noise.
 3. **Candidate effects.** ``temperature_bias``, ``temperature_scale``, ``time_drift_bias``
-   and ``scale_nonlinearity`` (primary), and ``temperature_cross`` (secondary: the
-   cross-axis terms' tempcos, affine9 only). Each extends the fitted model
-   (``affine9+effect``) and the simulator. A candidate is supported when all three hold:
+   and ``scale_nonlinearity`` (primary), ``temperature_cross`` (secondary: the
+   cross-axis terms' tempcos, affine9 only), and the event ``bias_step`` (the offset
+   jumps at one time, after a shock or a battery change). Each extends the fitted model
+   (``affine9+effect``) and the simulator. The step's time is chosen first, by a scan:
+   at ``step_times`` candidate times evenly spaced in pose order, the linearised χ² drop
+   of a step there (score statistic at the base fit); the best time is fitted like any
+   other candidate and its p-value multiplied by the number of times scanned
+   (Bonferroni). A candidate is supported when all three hold:
    * an F-test on the fit gives ``p < alpha / n_candidates`` (3 extra parameters
      against the residual variance: the complexity penalty). Under correlated noise the
      F statistic is divided by the effect's *design effect*: the ratio of the Wald
@@ -67,9 +72,12 @@ from scipy import stats
 from selfcal.boutnoise import BoutNoise, Bouts, estimate_bout_noise, find_bouts
 from selfcal.errors import InputError
 from selfcal.fit import FitConfig, GuardConfig, PoseData, datasheet_prior, fit_poses, implausible, pose_sigma
-from selfcal.models import EFFECT_PARAMS, SECONDARY_EFFECTS, ErrorModel, Normalizer
+from selfcal.models import EFFECT_PARAMS, EVENT_PARAMS, SECONDARY_EFFECTS, ErrorModel, Normalizer
 
 EFFECTS = tuple(EFFECT_PARAMS)
+#: Every candidate diagnose tests: the model effects, then the events (a bias step at a
+#: time found by a scan). The F-test level is divided over all of them.
+CANDIDATES = EFFECTS + tuple(EVENT_PARAMS)
 
 #: Physical unit and factor (from normalised parameters, g-based) for reporting estimates.
 EFFECT_UNITS = {
@@ -78,6 +86,7 @@ EFFECT_UNITS = {
     "time_drift_bias": ("mg/day", 1e3),
     "scale_nonlinearity": ("mg/g^2", 1e3),
     "temperature_cross": ("ppm/degC", 1e6),
+    "bias_step": ("mg", 1e3),
 }
 
 
@@ -86,7 +95,7 @@ class DiagnoseConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    alpha: float = Field(0.010, gt=0, lt=1, description="F-test level, Bonferroni-divided over the 5 candidates "
+    alpha: float = Field(0.012, gt=0, lt=1, description="F-test level, Bonferroni-divided over the 6 candidates "
                                                        "(2e-3 each; docs/diagnose.md, Power against BIC)")
     min_gain_rel: float = Field(0.01, ge=0, description="held-out RMS must drop by at least this fraction")
     time_split: float = Field(0.5, gt=0.1, lt=0.9, description="chronological split: fraction of time used to fit")
@@ -98,7 +107,13 @@ class DiagnoseConfig(BaseModel):
     )
     n_sim: int = Field(10, ge=2, description="simulated replicates of the recording under the base model")
     min_temp_range_c: float = Field(3.0, ge=0, description="temperature candidates need this range, degC")
-    min_time_span_h: float = Field(12.0, ge=0, description="drift candidate needs this time span, h")
+    min_time_span_h: float = Field(12.0, ge=0, description="drift and step candidates need this time span, h")
+    step_times: int = Field(
+        9, ge=1, description="bias step: candidate times scanned, evenly spaced in pose order (the step's p-value "
+                             "is multiplied by this: Bonferroni over the scan)")
+    step_min_side: float = Field(
+        0.15, gt=0, lt=0.5, description="bias step: the first and last candidate times leave this fraction of the "
+                                        "poses on their outer side")
     seed: int = Field(0, description="seed of the simulated replicates")
     estimate_floor: bool = Field(
         True, description="estimate the residual floor (beyond measured noise) from the base fit, instead of [fit] sigma_floor_g"
@@ -268,9 +283,80 @@ def _not_testable(effect: str, temp_c: np.ndarray | None, t_s: np.ndarray, cfg: 
         return "not testable: the recording has no temperature"
     if effect.startswith("temperature") and np.ptp(temp_c) < cfg.min_temp_range_c:
         return f"not testable: temperature range {np.ptp(temp_c):.1f} degC < {cfg.min_temp_range_c} degC"
-    if effect == "time_drift_bias" and np.ptp(t_s) < cfg.min_time_span_h * 3600:
+    if effect in ("time_drift_bias", "bias_step") and np.ptp(t_s) < cfg.min_time_span_h * 3600:
         return f"not testable: time span {np.ptp(t_s) / 3600:.1f} h < {cfg.min_time_span_h} h"
     return None
+
+
+def _refine_step(entry: dict, base_fit, data: _Data, sigma, q, times: np.ndarray, fit_cfg: FitConfig,
+                 unit: str, factor: float, max_times: int = 200) -> None:
+    """A supported step's time, refined between the scanned times around it (every gap
+    between two poses there, at most ``max_times``); the fit and the estimate are redone
+    at the refined time when it fits better. Estimation only: the test keeps the scanned
+    time and its Bonferroni count (a finer scan would be more looks)."""
+    tau = entry["step_time_s"]
+    k = int(np.searchsorted(times, tau))
+    lo = times[k - 1] if k > 0 else -np.inf
+    hi = times[k + 1] if k + 1 < len(times) else np.inf
+    ts = np.unique(data.t_s)
+    mids = 0.5 * (ts[1:] + ts[:-1])
+    fine = mids[(mids > lo) & (mids < hi)]
+    if len(fine) > max_times:
+        fine = fine[np.linspace(0, len(fine) - 1, max_times).astype(int)]
+    if len(fine) == 0:
+        return
+    tau_f, _ = scan_step(base_fit, data, sigma, q, fine)
+    if tau_f == tau:
+        return
+    old = entry["_fit"]
+    ext = ErrorModel(old.model.name, old.model.temp_ref_c, old.model.t_ref_s, tau_f)
+    fit = fit_poses(ext, data.poses(), prior=datasheet_prior(ext, fit_cfg), theta0_u=old.theta_u, cfg=fit_cfg)
+    if np.sum((fit.residuals_g / fit.sigma_g) ** 2) >= np.sum((old.residuals_g / old.sigma_g) ** 2):
+        return
+    sl = ext.index("bias_step")
+    est = fit.theta_u[sl] * factor
+    est_sd_ind = np.sqrt(np.diag(fit.cov_u)[sl]) * factor
+    est_sd = est_sd_ind * entry["_std_factor"][sl]
+    entry.update(step_time_s=tau_f, step_time_h=_f((tau_f - ext.t_ref_s) / 3600.0), step_time_scanned_s=tau,
+                 _fit=fit,
+                 estimate={"unit": unit, "value": dict(zip("xyz", np.round(est, 6).tolist())),
+                           "std": dict(zip("xyz", np.round(est_sd, 6).tolist())),
+                           "std_independent": dict(zip("xyz", np.round(est_sd_ind, 6).tolist()))})
+
+
+def step_times(t_s: np.ndarray, cfg: DiagnoseConfig) -> np.ndarray:
+    """Candidate times (s) of a bias step: ``step_times`` cuts evenly spaced in pose order
+    from ``step_min_side`` to ``1 - step_min_side`` of the poses, each half way between
+    two consecutive distinct times (sorted, unique, (k,) with k <= step_times)."""
+    ts = np.sort(np.asarray(t_s, dtype=float))
+    n = len(ts)
+    frac = np.linspace(cfg.step_min_side, 1.0 - cfg.step_min_side, cfg.step_times)
+    idx = np.clip(np.rint(frac * n).astype(int), 1, n - 1)
+    cuts = 0.5 * (ts[idx - 1] + ts[idx])
+    return np.unique(cuts[ts[idx - 1] < ts[idx]])
+
+
+def scan_step(base_fit, data: _Data, sigma: np.ndarray, q: np.ndarray, times: np.ndarray) -> tuple[float, np.ndarray]:
+    """The candidate step time (s) whose step explains the base fit's residuals best, and
+    the score statistic of every candidate, (k,).
+
+    At the base fit a bias step at ``tau`` has the Jacobian columns of the offset on the
+    poses from ``tau`` on; whitened and with the base model's columns projected out (``q``),
+    their score statistic ``z' (C'C)^-1 z`` (``z = C' r``, ``r`` the whitened residuals) is
+    the linearised chi2 drop of adding that step.
+    """
+    jb = base_fit.model.residual_jac(base_fit.theta_u, data.u, data.temp_c, data.t_s)[1][:, 0:3] / sigma[:, None]
+    rw = base_fit.residuals_g / sigma
+    score = np.zeros(len(times))
+    for k, tau in enumerate(times.tolist()):  # a handful of candidate times: one (n, 3) product each
+        c = jb * (data.t_s >= tau)[:, None]
+        c = c - q @ (q.T @ c)
+        z = c.T @ rw
+        try:
+            score[k] = float(z @ np.linalg.solve(c.T @ c, z))
+        except np.linalg.LinAlgError:
+            score[k] = 0.0
+    return float(times[int(np.argmax(score))]), score
 
 
 def _noise_residuals(base_fit, data: _Data, effects: list[str]) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
@@ -360,9 +446,9 @@ def _whitened_projection(fit, data: _Data):
     return sigma, q
 
 
-def _effect_columns(effect: str, base_fit, data: _Data, sigma, q) -> np.ndarray:
-    """Whitened Jacobian columns of an effect at zero effect, with the base part projected out."""
-    ext = base_fit.model.with_effects((effect,))
+def _effect_columns(ext: ErrorModel, effect: str, base_fit, data: _Data, sigma, q) -> np.ndarray:
+    """Whitened Jacobian columns of ``effect`` in ``ext`` (the base model plus it) at zero
+    effect, with the base part projected out."""
     theta = ext.extend_theta(base_fit.theta_u, base_fit.model)
     j = ext.residual_jac(theta, data.u, data.temp_c, data.t_s)[1][:, ext.index(effect)] / sigma[:, None]
     return j - q @ (q.T @ j)
@@ -482,15 +568,27 @@ def diagnose_poses(
     n = len(data.u)
     chi2_base = float(np.sum((base_fit.residuals_g / base_fit.sigma_g) ** 2))
     sigma, q = _whitened_projection(base_fit, data)
+    level = cfg.alpha / len(CANDIDATES)
     candidates = []
-    for eff in EFFECTS:
-        ext = ErrorModel(f"{base.base}+{eff}", temp_ref, t_ref)
+    for eff in CANDIDATES:
         entry: dict[str, Any] = {"name": eff, "selected": False, "evidence": "", "estimate": None}
         why_not = _not_testable(eff, temp, t_s, cfg, base.base)
+        looks = 1  # the step's time is chosen by a scan over this many candidate times
+        if eff == "bias_step" and why_not is None:
+            times = step_times(t_s, cfg)
+            if len(times) == 0:
+                why_not = "not testable: no time between two poses to place a step"
+            else:
+                tau, _ = scan_step(base_fit, data, sigma, q, times)
+                looks = len(times)
+                entry["step_time_s"] = tau
+                entry["step_time_h"] = _f((tau - t_ref) / 3600.0)
+                entry["step_times_scanned"] = looks
         if why_not:
             entry["evidence"] = why_not
             candidates.append(entry)
             continue
+        ext = ErrorModel(f"{base.base}+{eff}", temp_ref, t_ref, entry.get("step_time_s", float("nan")))
         ext_fit = fit_poses(ext, data.poses(), prior=datasheet_prior(ext, fit_cfg),
                             theta0_u=ext.extend_theta(base_fit.theta_u, base), cfg=fit_cfg)
         chi2_ext = float(np.sum((ext_fit.residuals_g / ext_fit.sigma_g) ** 2))
@@ -501,7 +599,7 @@ def diagnose_poses(
         deff = _design_effect(covs, ext.index(eff), ext_fit.theta_u[ext.index(eff)])
         std_factor = _std_factor(covs, ext.n_params)
         fstat = f_indep / deff
-        pval = float(stats.f.sf(fstat, 3, dof))
+        pval = min(1.0, looks * float(stats.f.sf(fstat, 3, dof)))
         scores = _split_scores(ext, data, cfg, fit_cfg, ext_fit.theta_u, bouts)
         # a fit that leaves the plausible range, or folds the poses onto a few directions
         # (a degenerate minimum of the norm objective), explains nothing physical
@@ -513,37 +611,46 @@ def diagnose_poses(
             why_implausible = f"the fit turns the median pose direction by {moved_deg:.0f} deg (a degenerate fold)"
         gain_time = 1 - scores["time"] / base_scores["time"] if base_scores["time"] > 0 else float("nan")
         gain_pose = 1 - scores["pose"] / base_scores["pose"] if base_scores["pose"] > 0 else float("nan")
+        # a step is judged on the split by pose alone: a held-out time block on one side of
+        # the step leaves the fit nothing to tell the offset before it from the one after
+        gain_cv = gain_pose if eff == "bias_step" else np.nanmean([gain_time, gain_pose])
         sl = ext.index(eff)
         unit, factor = EFFECT_UNITS[eff]
         est = ext_fit.theta_u[sl] * factor
         est_sd_ind = np.sqrt(np.diag(ext_fit.cov_u)[sl]) * factor
         est_sd = est_sd_ind * std_factor[sl]
-        cols = _effect_columns(eff, base_fit, data, sigma, q)
+        cols = _effect_columns(ext, eff, base_fit, data, sigma, q)
         pattern = cols @ (ext_fit.theta_u[sl])  # whitened residual pattern the effect explains
         entry.update(
             chi2=chi2_ext, dchi2_eff=(chi2_base - chi2_ext) / deff, f_stat=_f(fstat), p_value=pval,
             f_stat_independent=_f(f_indep), design_effect=_f(deff), heldout_rms_mg_time=_f(scores["time"]),
             heldout_rms_mg_pose=_f(scores["pose"]), heldout_rms_mg_chrono=_f(scores["chrono"]),
-            gain_time=_f(gain_time), gain_pose=_f(gain_pose), gain_cv=_f(np.nanmean([gain_time, gain_pose])),
+            gain_time=_f(gain_time), gain_pose=_f(gain_pose), gain_cv=_f(gain_cv),
             estimate={"unit": unit, "value": dict(zip("xyz", np.round(est, 6).tolist())),
                       "std": dict(zip("xyz", np.round(est_sd, 6).tolist())),
                       "std_independent": dict(zip("xyz", np.round(est_sd_ind, 6).tolist()))},
             _fit=ext_fit, _cols=cols, _pattern=pattern, _std_factor=std_factor,
         )
-        gain_cv = np.nanmean([gain_time, gain_pose])
-        passes = (pval < cfg.alpha / len(EFFECTS)) and gain_cv >= cfg.min_gain_rel and why_implausible is None
+        passes = (pval < level) and gain_cv >= cfg.min_gain_rel and why_implausible is None
         entry["supported"] = bool(passes)
+        if eff == "bias_step" and passes:
+            _refine_step(entry, base_fit, data, sigma, q, times, fit_cfg, unit, factor)
         deff_note = "" if deff == 1.0 else f"; design effect {deff:.1f} under the bout noise, F={f_indep:.1f} if independent"
         entry["evidence"] = (
             f"F={fstat:.1f} (p={pval:.2g}, 3 extra parameters{deff_note}); held-out RMS {base_scores['time']:.3f} -> "
             f"{scores['time']:.3f} mg by time blocks, {base_scores['pose']:.3f} -> {scores['pose']:.3f} mg by pose"
         )
+        if eff == "bias_step":
+            refined = (f", refined to {entry['step_time_h']:.1f} h" if "step_time_scanned_s" in entry else "")
+            entry["evidence"] += (f"; the step at {(entry.get('step_time_scanned_s', entry['step_time_s']) - t_ref) / 3600:.1f} h "
+                                  f"scores best of {looks} times scanned (p multiplied by {looks}){refined}")
         if not passes:
             why = []
-            if pval >= cfg.alpha / len(EFFECTS):
+            if pval >= level:
                 why.append("not significant")
             if not gain_cv >= cfg.min_gain_rel:
-                why.append(f"held-out gain {gain_cv:.1%} (mean of the time and pose splits) below {cfg.min_gain_rel:.0%}")
+                split = "the split by pose" if eff == "bias_step" else "mean of the time and pose splits"
+                why.append(f"held-out gain {gain_cv:.1%} ({split}) below {cfg.min_gain_rel:.0%}")
             if why_implausible:
                 why.append("implausible: " + why_implausible)
             entry["evidence"] += "; not supported: " + ", ".join(why)
@@ -583,7 +690,7 @@ def diagnose_poses(
             c["dchi2_vs_best"] = _f(dchi2)
             if best["name"] not in SECONDARY_EFFECTS and c["name"] in SECONDARY_EFFECTS:
                 continue  # a secondary that did not win does not make a primary ambiguous
-            if c["p_value"] < cfg.alpha / len(EFFECTS) and dchi2 < cfg.separable_dchi2:
+            if c["p_value"] < level and dchi2 < cfg.separable_dchi2:
                 ambiguous.append(c["name"])
         if ambiguous:
             best["evidence"] += (
@@ -609,6 +716,7 @@ def diagnose_poses(
         full = best["_fit"]
         extended_model = {
             "model": ext.name, "temp_ref_c": ext.temp_ref_c, "t_ref_s": ext.t_ref_s,
+            **({"t_step_s": ext.t_step_s} if "bias_step" in ext.effects else {}),
             "params": ext.to_dict(normalizer.theta_to_raw(ext, full.theta_u)),
             "std": dict(zip(ext.param_names, np.sqrt(np.diag(
                 normalizer.cov_to_raw(ext, _inflate(full.cov_u, best["_std_factor"])))).tolist())),

@@ -87,6 +87,7 @@ class FitConfig(BaseModel):
     prior_temp_scale_per_c: float = Field(3e-4, gt=0, description="prior sd of the sensitivity tempco, 1/degC")
     prior_drift_g_per_day: float = Field(2e-3, gt=0, description="prior sd of the offset drift, g/day")
     prior_nonlin_per_g: float = Field(0.01, gt=0, description="prior sd of the quadratic nonlinearity q, 1/g")
+    prior_bias_step_g: float = Field(0.02, gt=0, description="prior sd of a bias step (bias_step event), g")
     prior_temp_cross_per_c: float = Field(
         1e-4, gt=0, description="prior sd of the cross-axis tempco tn, 1/degC (100 ppm/degC: 2 mrad over 20 degC)")
     determined_ratio: float = Field(
@@ -135,6 +136,7 @@ class GuardConfig(BaseModel):
     max_drift_g_per_day: float = Field(0.05, gt=0, description="plausible |bias drift|, g/day")
     max_nonlin_per_g: float = Field(0.1, gt=0, description="plausible |scale nonlinearity q|, 1/g")
     max_temp_cross_per_c: float = Field(0.002, gt=0, description="plausible |cross-axis tempco tn|, 1/degC")
+    max_bias_step_g: float = Field(0.2, gt=0, description="plausible |bias step| (bias_step event), g")
     max_residual_rms_mg: float = Field(30.0, gt=0, description="fit residual RMS above this: implausible")
 
     @classmethod
@@ -243,6 +245,7 @@ def datasheet_prior(model: ErrorModel, cfg: FitConfig | None = None, inflate: fl
         "time_drift_bias": cfg.prior_drift_g_per_day,
         "scale_nonlinearity": cfg.prior_nonlin_per_g,
         "temperature_cross": cfg.prior_temp_cross_per_c,
+        "bias_step": cfg.prior_bias_step_g,
     }
     for eff in model.effects:
         sd[model.index(eff)] = per_effect[eff]
@@ -1047,6 +1050,7 @@ def implausible(model: ErrorModel, theta_u: np.ndarray, cfg: GuardConfig) -> str
         "time_drift_bias": cfg.max_drift_g_per_day,
         "scale_nonlinearity": cfg.max_nonlin_per_g,
         "temperature_cross": cfg.max_temp_cross_per_c,
+        "bias_step": cfg.max_bias_step_g,
     }
     checks += [(e, limits[e], 0.0) for e in model.effects]
     for key, lim, centre in checks:

@@ -30,6 +30,13 @@ Effects (extensions; each adds 3 per-axis parameters)
                        ``n + tn (T - T_ref)`` (a package that bends as it warms couples
                        the axes; ``tn = 1e-5`` is 10 ppm/degC of cross-axis coupling)
 
+Event (a change at one time ``t_step_s``, which the model takes as a constant)
+---------------------------------------------------------------------------
+``bias_step``          ``sbx, sby, sbz`` raw unit: offset ``b + sb`` from ``t_step_s`` on (a
+                       shock or a battery change moves the bias at once). ``selfcal
+                       diagnose`` scans for the time; no calibrator runs this model (the
+                       online answer to a step is to down-weight what came before it).
+
 The simulator (``selfcal.sim``) produces the same effects in the forward direction;
 the forms here are their first-order inverses.
 """
@@ -58,15 +65,22 @@ EFFECT_PARAMS = {
     "temperature_cross": ("tnxy", "tnxz", "tnyz"),
 }
 
+#: Events: effects of a change at one time (the model's ``t_step_s``), found by diagnose's
+#: scan over candidate times. Not in EFFECT_PARAMS: no calibrator switches to them.
+EVENT_PARAMS = {
+    "bias_step": ("sbx", "sby", "sbz"),
+}
+_ALL_EFFECT_PARAMS = {**EFFECT_PARAMS, **EVENT_PARAMS}
+
 #: Effects diagnose and online selection take only when they clearly beat the others: a
 #: cross-axis tempco into z looks like a temperature bias on mostly flat poses, and a
 #: bias is the far more common effect (docs/diagnose.md).
-SECONDARY_EFFECTS = ("temperature_cross",)
+SECONDARY_EFFECTS = ("temperature_cross", "bias_step")
 
 #: Units of each parameter family, for documentation and reports ("raw" = recording unit).
 PARAM_UNITS = {
     "b": "raw", "s": "g/raw", "n": "1", "psi": "rad", "theta": "rad", "phi": "rad",
-    "tb": "raw/degC", "ts": "1/degC", "db": "raw/day", "q": "1/g", "tn": "1/degC",
+    "tb": "raw/degC", "ts": "1/degC", "db": "raw/day", "q": "1/g", "tn": "1/degC", "sb": "raw",
 }
 
 _UPPER = ((0, 1), (0, 2), (1, 2))  # positions of nxy, nxz, nyz
@@ -82,7 +96,7 @@ def parse_model_name(name: str) -> tuple[str, tuple[str, ...]]:
         )
     effects = tuple(parts[1:])
     for eff in effects:
-        if eff not in EFFECT_PARAMS:
+        if eff not in _ALL_EFFECT_PARAMS:
             raise InputError(f"model: unknown effect {eff!r}; choose from {sorted(EFFECT_PARAMS)}")
     if len(set(effects)) != len(effects):
         raise InputError(f"model: effect repeated in {name!r}")
@@ -91,7 +105,7 @@ def parse_model_name(name: str) -> tuple[str, tuple[str, ...]]:
     if "temperature_cross" in effects and parts[0] != "affine9":
         raise InputError(f"model: temperature_cross varies the cross-axis terms of affine9; {parts[0]} has none")
     # canonical order, so that names compare equal
-    effects = tuple(e for e in EFFECT_PARAMS if e in effects)
+    effects = tuple(e for e in _ALL_EFFECT_PARAMS if e in effects)
     return parts[0], effects
 
 
@@ -108,11 +122,14 @@ class ErrorModel:
         Reference temperature (degC) of the temperature effects.
     t_ref_s : float
         Time origin (s) of the drift effect.
+    t_step_s : float
+        Time (s, the clock of ``t_s``) of the ``bias_step`` event; required by it.
     """
 
     name: str = "affine9"
     temp_ref_c: float = 25.0
     t_ref_s: float = 0.0
+    t_step_s: float = float("nan")
     base: str = field(init=False)
     effects: tuple[str, ...] = field(init=False)
     param_names: tuple[str, ...] = field(init=False)
@@ -121,9 +138,12 @@ class ErrorModel:
         base, effects = parse_model_name(self.name)
         object.__setattr__(self, "base", base)
         object.__setattr__(self, "effects", effects)
-        names = BASE_PARAMS[base] + tuple(n for e in effects for n in EFFECT_PARAMS[e])
+        names = BASE_PARAMS[base] + tuple(n for e in effects for n in _ALL_EFFECT_PARAMS[e])
         object.__setattr__(self, "param_names", names)
         object.__setattr__(self, "name", "+".join((base,) + effects))
+        if "bias_step" in effects and not np.isfinite(self.t_step_s):
+            raise InputError("model: bias_step needs the time of the step (t_step_s); `selfcal diagnose` scans "
+                             "for it, and a calibrator answers a step by down-weighting what came before it")
 
     # ------------------------------------------------------------------ basics
     @property
@@ -190,7 +210,8 @@ class ErrorModel:
 
     def with_effects(self, effects: tuple[str, ...]) -> "ErrorModel":
         """The same base model with a different set of effects."""
-        return ErrorModel("+".join((self.base,) + tuple(effects)), self.temp_ref_c, self.t_ref_s)
+        return ErrorModel("+".join((self.base,) + tuple(effects)), self.temp_ref_c, self.t_ref_s,
+                          self.t_step_s if "bias_step" in effects else float("nan"))
 
     def extend_theta(self, theta: np.ndarray, other: "ErrorModel") -> np.ndarray:
         """Map ``theta`` of ``other`` into this model (shared names copied, new ones 0)."""
@@ -267,12 +288,20 @@ class ErrorModel:
             dtime = (np.asarray(t_s, dtype=float).reshape(n) - self.t_ref_s) / SECONDS_PER_DAY
         return dtemp, dtime
 
+    def _after_step(self, n: int, t_s) -> np.ndarray:
+        """1.0 for rows at or after ``t_step_s``, else 0.0, (n,)."""
+        if t_s is None:
+            raise InputError(f"model {self.name} needs t_s (s) for every row")
+        return (np.asarray(t_s, dtype=float).reshape(n) >= self.t_step_s).astype(float)
+
     def _forward(self, theta, raw, temp_c, t_s):
         theta = np.asarray(theta, dtype=float)
         raw = np.asarray(raw, dtype=float)
         n = raw.shape[0]
         dtemp, dtime = self._covariates(n, temp_c, t_s)
         b = theta[0:3]  # (3,) broadcasts; (n, 3) once an effect makes it per-sample
+        if "bias_step" in self.effects:
+            b = b + self._after_step(n, t_s)[:, None] * theta[self.index("bias_step")]
         if "temperature_bias" in self.effects:
             b = b + dtemp[:, None] * theta[self.index("temperature_bias")]
         if "time_drift_bias" in self.effects:
@@ -380,6 +409,8 @@ class ErrorModel:
             jac[:, self.index("temperature_bias")] = -v * dtemp[:, None]
         if "time_drift_bias" in self.effects:
             jac[:, self.index("time_drift_bias")] = -v * dtime[:, None]
+        if "bias_step" in self.effects:
+            jac[:, self.index("bias_step")] = -v * self._after_step(n, t_s)[:, None]
         return r, jac
 
 
@@ -409,7 +440,7 @@ class Normalizer:
         f = np.ones(model.n_params)
         f[0:3] = self.scale
         f[3:6] = 1.0 / self.scale
-        for eff in ("temperature_bias", "time_drift_bias"):
+        for eff in ("temperature_bias", "time_drift_bias", "bias_step"):
             if eff in model.effects:
                 f[model.index(eff)] = self.scale
         return f

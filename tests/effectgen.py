@@ -11,6 +11,8 @@ included) plus one hidden effect in its *forward* (physical) form:
 * scale_nonlinearity raw += k [mg/g^2] * a_axis^2 on one axis (a: true specific force)
 * temperature_cross  raw_i += k [ppm/degC] * (T - 25) * a_j: axis i picks up axis j's signal
                      (i != j, either order: a package that bends as it warms)
+* bias_step          raw += k [mg] on one axis from a time uniform in the middle half of
+                     the span on (a shock or a battery change)
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ EFFECT_RANGES = {  # realistic magnitudes (the issue's ranges), physical units
 NAMES = tuple(EFFECT_RANGES) + (None,)
 #: Effects the diagnosis treats as secondary (named only when clearly better than a primary).
 SECONDARY_RANGES = {"temperature_cross": (100.0, 300.0)}  # ppm/degC
+#: Events: a change at one time (diagnose scans for it).
+EVENT_RANGES = {"bias_step": (1.0, 5.0)}  # mg
 
 
 def _rot(axis, ang):
@@ -75,7 +79,7 @@ def hidden_effect_case(rng, effect=None, magnitude=None, n_poses=120, days=8.0, 
     axis = int(rng.integers(3))
     sign = float(rng.choice([-1.0, 1.0]))
     if effect is not None and magnitude is None:
-        lo, hi = {**EFFECT_RANGES, **SECONDARY_RANGES}[effect]
+        lo, hi = {**EFFECT_RANGES, **SECONDARY_RANGES, **EVENT_RANGES}[effect]
         magnitude = rng.uniform(lo, hi)
     coef = 0.0 if effect is None else sign * magnitude
     raw = lin + offset
@@ -91,7 +95,12 @@ def hidden_effect_case(rng, effect=None, magnitude=None, n_poses=120, days=8.0, 
     elif effect == "temperature_cross":
         other = (axis + 1 + int(rng.integers(2))) % 3
         raw[:, axis] += 1e-6 * coef * dT * a[:, other]
+    elif effect == "bias_step":
+        t_step = rng.uniform(0.25, 0.75) * days * 86400
+        raw[:, axis] += 1e-3 * coef * (t_s >= t_step)
     raw += rng.normal(0, 1, raw.shape) * sample_sd_g / np.sqrt(count)[:, None]
     poses = {"mean": raw, "sd": np.full((n_poses, 3), sample_sd_g), "count": count, "t_s": t_s, "temp_c": temp}
     truth = {"effect": effect, "axis": "xyz"[axis], "coef": coef, "magnitude": magnitude}
+    if effect == "bias_step":
+        truth["t_step_s"] = t_step
     return poses, truth

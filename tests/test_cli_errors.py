@@ -45,6 +45,7 @@ CASES = [
     ("unknown effect", lambda d: ["calibrate", POSES, "--model", "affine9+wobble"], 2, "unknown effect"),
     ("cross-axis terms on scale6", lambda d: ["calibrate", POSES, "--model", "scale6+temperature_cross"], 2,
      "cross-axis"),
+    ("a bias step by name", lambda d: ["calibrate", POSES, "--model", "affine9+bias_step"], 2, "t_step_s"),
     ("worker nice out of range", lambda d: ["worker", "--db", "postgresql://x@127.0.0.1:1/x", "--nice", "25"], 2,
      "--nice 25"),
     ("bad TOML", lambda d: ["calibrate", POSES, "--config", d / "bad.toml"], 2, "invalid TOML"),

@@ -103,7 +103,7 @@ def test_cli_diagnose_json_and_report(tmp_path, capsys):
     assert main(["diagnose", str(path), "--json", "--report", str(tmp_path / "rep")]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["cause"] == "temperature_bias"
-    assert {e["name"] for e in out["effects"]} == set(EFFECT_RANGES) | {"temperature_cross"}
+    assert {e["name"] for e in out["effects"]} == set(EFFECT_RANGES) | {"temperature_cross", "bias_step"}
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "What the simulation gets wrong" in md and "temperature_bias" in md
     assert (tmp_path / "rep" / "residual_vs_temp_time.png").stat().st_size > 1000
@@ -192,3 +192,30 @@ def test_cross_axis_temperature_terms_are_named_when_the_poses_tell_them_apart()
     print(causes)
     assert causes.count("temperature_cross") >= 27, causes
     assert set(causes) <= {"temperature_cross", None}, causes
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_bias_step_is_named_with_its_time_and_size(seed):
+    """A bias that jumps by 1.5-3 mg on one axis at an unknown time (a shock, a battery
+    change): named ``bias_step``, its time within a few poses of the truth, its size on the
+    right axis within 3 reported sd, and the extended model carries the step time."""
+    rng = np.random.default_rng(77_000 + seed)
+    poses, truth = hidden_effect_case(rng, "bias_step", float(rng.uniform(1.5, 3.0)), n_poses=240)
+    rep = _diagnose(poses)
+    assert rep["cause"] == "bias_step", [c["evidence"] for c in rep["effects"]]
+    step = next(c for c in rep["effects"] if c["name"] == "bias_step")
+    gaps = np.diff(np.sort(poses["t_s"]))
+    assert abs(step["step_time_s"] - truth["t_step_s"]) <= 6 * np.median(gaps)
+    est, sd = step["estimate"]["value"][truth["axis"]], step["estimate"]["std"][truth["axis"]]
+    assert abs(est - truth["coef"]) <= 3 * sd, (est, sd, truth["coef"])
+    assert rep["extended_model"]["t_step_s"] == step["step_time_s"]
+
+
+def test_no_step_is_invented_on_a_drift_or_a_clean_set():
+    """A step is a secondary candidate: a drift (a ramp a step can imitate) keeps its name,
+    and effect-free sets name nothing."""
+    for seed in range(4):
+        poses, _ = hidden_effect_case(np.random.default_rng(78_000 + seed), "time_drift_bias", 0.5, n_poses=240)
+        assert _diagnose(poses)["cause"] == "time_drift_bias"
+        poses, _ = hidden_effect_case(np.random.default_rng(79_000 + seed), None, n_poses=240)
+        assert _diagnose(poses)["cause"] is None

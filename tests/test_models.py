@@ -121,3 +121,25 @@ def test_temperature_cross_inverts_the_simulator_exactly_and_its_jacobian_is_rig
     with pytest.raises(InputError, match="cross-axis"):
         ErrorModel("scale6+temperature_cross")
     assert ErrorModel("affine9").takes("temperature_cross") and not ErrorModel("scale6").takes("temperature_cross")
+
+
+def test_bias_step_event_jacobian_and_its_time_is_required():
+    """``bias_step``: the offset moves by ``sb`` from ``t_step_s`` on (analytic Jacobian
+    checked by finite differences); without a step time the model is a clear error."""
+    m = ErrorModel("affine9+bias_step", 25.0, 0.0, 500.0)
+    assert m.param_names[-3:] == ("sbx", "sby", "sbz")
+    rng = np.random.default_rng(3)
+    raw = rng.normal(size=(60, 3))
+    raw /= np.linalg.norm(raw, axis=1, keepdims=True)
+    t = np.linspace(0.0, 1000.0, 60)
+    th = m.nominal()
+    th[0:3], th[9:12] = [0.01, 0.0, 0.02], [0.01, -0.02, 0.005]
+    _, jac = m.residual_jac(th, raw, None, t)
+    eye = np.eye(m.n_params) * 1e-7
+    num = np.column_stack([(m.residuals(th + e, raw, None, t) - m.residuals(th - e, raw, None, t)) / 2e-7 for e in eye])
+    np.testing.assert_allclose(jac, num, atol=1e-7)
+    before = t < 500.0  # the step changes nothing before its time
+    base = m.with_effects(())
+    np.testing.assert_allclose(m.apply(th, raw[before], None, t[before]), base.apply(th[:9], raw[before]))
+    with pytest.raises(InputError, match="t_step_s"):
+        ErrorModel("affine9+bias_step")
