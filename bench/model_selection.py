@@ -10,7 +10,8 @@ For each effect (default ``temperature_bias``), ``--devices`` insoles are replay
 It prints how many devices switched, the median day of the switch, what they switched
 to, and the final true whole-sphere error of each against the reference (ratio). Then
 ``--clean-devices`` effect-free insoles are replayed from ``affine9`` and every switch
-is a false one.
+is a false one, and so is every bias step found (steps are not model switches: the
+calibrator down-weights the cells from before one).
 
     python bench/model_selection.py                       # 20 + 20 with the effect, 50 clean
     python bench/model_selection.py --effects temperature_bias,temperature_scale --devices 5 --clean-devices 10
@@ -84,6 +85,12 @@ def main(argv=None) -> int:
               + "".join(f"\n  seed {r['seed']}: " + ", ".join(f"day {s['day']:.1f} {s['change']} {s['effect']} "
                                                             f"(z {s['heldout_z_larger_model']}, chi2 {s['wald_chi2']})"
                                                             for s in r["model_switches"]) for r in switched))
+        stepped = [r for r in clean if r.get("bias_steps")]
+        print(f"false bias steps: {len(stepped)}/{args.clean_devices} devices"
+              + "".join(f"\n  seed {r['seed']}: " + ", ".join(f"day {s['day']:.1f}: {s['size_mg']} mg at "
+                                                            f"{s['t_step_s'] / 86400:.1f} d (z {s['heldout_z']}, "
+                                                            f"chi2 {s['wald_chi2']})" for s in r["bias_steps"])
+                        for r in stepped))
     return 0
 
 

@@ -70,6 +70,7 @@ from selfcal.selection import (
     wald_significant,
 )
 from selfcal.selection import applicable as selection_applicable
+from selfcal.steps import refine_time, scan_step, step_times, whitened_basis
 
 SECONDS_PER_DAY = 86400.0
 STATE_FORMAT_VERSION = 2
@@ -370,7 +371,7 @@ class OnlineCalibrator:
                 return switched
             usable = self._usable()
             n_cells = int(usable.sum())
-        data = self.store.pose_data(usable, t_now, self._age_var())
+        data = self._pose_data(usable, t_now)
         prior = self.prior()
         theta0 = self.initial_params_u if self.current is None else np.asarray(self.current["theta_u"])
         try:
@@ -387,6 +388,31 @@ class OnlineCalibrator:
         if hold:
             return self._refuse(t_now, "no_significant_change", hold, fit, decision)
         return self._publish(t_now, fit, cal, decision)
+
+    def _pose_data(self, mask: np.ndarray, t_now: float) -> PoseData:
+        """The store's cells ``mask`` as poses to fit: aged (process noise), and, once a bias
+        step was found, the cells with data from before it down-weighted: their variance
+        grows by the step's squared size and its variance (their offset is not today's)."""
+        data = self.store.pose_data(mask, t_now, self._age_var())
+        steps = self.selection.get("steps") or []
+        if not steps:
+            return data
+        # a cell is off by every step since its first window (their sizes add up when they
+        # share a sign). Its sd grows by step_downweight x that offset: with the offset
+        # alone (1 sd each), a month of old cells still outweighed the new ones and
+        # selection took the step for a drift
+        t_first = self.store.t_first[mask]
+        size = np.zeros(len(t_first))
+        var = np.zeros(len(t_first))
+        for st in steps:
+            later = t_first < float(st["t_step_s"])
+            size += later * float(np.linalg.norm(st["size_mg"])) * 1e-3
+            var += later * float(np.sum(np.square(st["sd_mg"]))) * 1e-6
+        if not np.any(size > 0):
+            return data
+        k = self.sel_cfg.step_downweight
+        sd = np.sqrt(data.sd**2 + (k**2 * (size**2 + var))[:, None])
+        return PoseData(data.mean, sd, data.count, data.t_s, data.temp_c)
 
     def _fit_store(self, data: PoseData, usable: np.ndarray, prior: Prior, theta0) -> tuple:
         """The robust MAP fit of the cells, with the noise the data show; returns
@@ -459,12 +485,13 @@ class OnlineCalibrator:
             """(mask, data with the noise the current model's fit shows, fit config, small-model CV cache)."""
             if with_temp not in prepared:
                 mask = np.isfinite(temps) if with_temp else np.ones(len(self.store), dtype=bool)
-                data = self.store.pose_data(mask, t_now, self._age_var())
+                data = self._pose_data(mask, t_now)
                 _, data, cfg, _ = self._fit_store(data, mask, self.prior(), theta)
                 prepared[with_temp] = (mask, data, cfg, {})
             return prepared[with_temp]
 
         try:
+            self._reestimate_step(t_now)
             # drop: an effect selection added that no longer pays
             for e in [x for x in self.selection.get("added", []) if x in self.model.effects]:
                 small = self.model.with_effects(tuple(x for x in self.model.effects if x != e))
@@ -491,9 +518,16 @@ class OnlineCalibrator:
                 results.append(("add", comp))
                 if supports(comp, c):
                     supported.append(comp)
+            # did the offset jump? A step imitates a drift (and a drift a step): both are
+            # asked, and the one with the larger held-out gain is taken
+            step = self._test_step(cells, folds_all, clusters_all, clip, theta, results) if c.step else None
         except (InputError, np.linalg.LinAlgError) as exc:  # a check that cannot be made is logged, never raised
             self._log_check(t_now, results, f"not decided: {exc}")
             return None
+        if step is not None and (not supported or step[1].gain_rel > max(x.gain_rel for x in supported)):
+            found = self._step_found(step[0], step[1], t_now, results)
+            if found is not None:
+                return found
         if not supported:
             self._log_check(t_now, results, None)
             return None
@@ -514,6 +548,106 @@ class OnlineCalibrator:
         return self._switch(ErrorModel(best.large, self.model.temp_ref_c, self._candidate(best.effect).t_ref_s),
                             best, "added", t_now, results)
 
+    def _reestimate_step(self, t_now: float) -> None:
+        """The size of the last step found, refitted on the cells since the step before it at
+        their own weights (a step found soon after it happened is known from few cells; the
+        down-weighting of the cells before it follows what the data say now)."""
+        steps = self.selection.get("steps") or []
+        if not steps:
+            return
+        last = steps[-1]
+        since = float(steps[-2]["t_step_s"]) if len(steps) > 1 else -np.inf
+        usable = self._usable() & (self.store.t_first >= since)
+        if usable.sum() < self.sel_cfg.min_cells:
+            return
+        large = ErrorModel(f"{self.model.name}+bias_step", self.model.temp_ref_c, self.model.t_ref_s,
+                           float(last["t_step_s"]))
+        data = self.store.pose_data(usable, t_now, self._age_var())
+        theta0 = large.extend_theta(np.asarray(self.current["theta_u"], float), self.model)
+        theta0[large.index("bias_step")] = np.asarray(last["size_mg"], float) * 1e-3
+        fit = fit_poses(large, data, prior=self._prior_of(large), theta0_u=theta0, cfg=self._fit_cfg_now or self.fit_cfg,
+                        robust=True)
+        if not fit.success:
+            return
+        sl = large.index("bias_step")
+        last["size_mg"] = [round(float(x), 4) for x in fit.theta_u[sl] * 1e3]
+        last["sd_mg"] = [round(float(x), 4) for x in np.sqrt(np.diag(fit.cov_u)[sl]) * 1e3]
+        last["reestimated_t_s"] = float(t_now)
+
+    def _test_step(self, cells, folds_all, clusters_all, clip: float, theta: np.ndarray,
+                   results: list) -> tuple[float, Comparison] | None:
+        """One question of a check: did the offset jump (a shock, a battery change) since the
+        last step found? The best of ``step_times`` candidate times (:mod:`selfcal.steps`)
+        is tested like an effect (:func:`compare`: Wald test of the step at ``alpha /
+        step_times``, held-out cells). ``(step time s, comparison)`` when supported, else None."""
+        c = self.sel_cfg
+        mask, data, cfg, cv_small = cells(self.model.uses_temperature)
+        steps = self.selection.get("steps") or []
+        recent = data.t_s > (float(steps[-1]["t_step_s"]) if steps else -np.inf)
+        if recent.sum() < c.min_cells or float(np.ptp(data.t_s[recent])) < c.min_time_span_days * 86400.0:
+            return None
+        times = step_times(data.t_s[recent], c)
+        if len(times) == 0:
+            return None
+        small = fit_poses(self.model, data, prior=self.prior(), theta0_u=theta, cfg=cfg, robust=True)
+        sigma, q = whitened_basis(small, data.mean, data.temp_c, data.t_s)
+        tau, _ = scan_step(small, data.mean, data.temp_c, data.t_s, sigma, q, times)
+        large = ErrorModel(f"{self.model.name}+bias_step", self.model.temp_ref_c, self.model.t_ref_s, tau)
+        level = c.model_copy(update={"alpha": c.alpha / len(times)})
+        comp = compare(self.model, large, data, folds_all[mask], prior_small=self.prior(),
+                       prior_large=self._prior_of(large), theta_small=theta, fit_cfg=cfg, clip_g=clip,
+                       cv_small=cv_small, clusters=clusters_all[mask], cv_only_if=wald_significant(level))
+        results.append(("step", comp))
+        if not supports(comp, level):
+            return None
+        return refine_time(small, data.mean, data.temp_c, data.t_s, sigma, q, times, tau), comp
+
+    def _step_found(self, tau: float, comp: Comparison, t_now: float, results: list) -> dict | None:
+        """Record a bias step at ``tau`` (s), refit the current model with the cells from
+        before it down-weighted, and publish that as a version; None if it does not fit."""
+        fit_l = comp.large_fit
+        sl = fit_l.model.index("bias_step")
+        size, cov = fit_l.theta_u[sl], fit_l.cov_u[sl, sl]
+        record = {"change": "bias_step", "t_step_s": float(tau), "found_t_s": float(t_now),
+                  "size_mg": [round(float(x), 4) for x in size * 1e3],
+                  "sd_mg": [round(float(x), 4) for x in np.sqrt(np.diag(cov)) * 1e3],
+                  "heldout_rms_mg_before": None if not np.isfinite(comp.heldout_rms_small_mg)
+                  else round(comp.heldout_rms_small_mg, 4),
+                  "heldout_rms_mg_after": None if not np.isfinite(comp.heldout_rms_large_mg)
+                  else round(comp.heldout_rms_large_mg, 4),
+                  "heldout_z": None if not np.isfinite(comp.heldout_z) else round(comp.heldout_z, 3),
+                  "n_heldout_cells": comp.n_heldout, "wald_chi2": round(comp.wald_chi2, 3)}
+        before = list(self.selection.get("steps") or [])
+        self.selection["steps"] = before + [dict(record)]  # re-estimated later; the version keeps this
+        fit = why = None
+        try:
+            usable = self._usable()
+            data = self._pose_data(usable, t_now)
+            fit, data, cfg, c_noise = self._fit_store(data, usable, self.prior(),
+                                                      np.asarray(self.current["theta_u"], float))
+            why = None if fit.success else f"the fit did not converge: {fit.message}"
+            why = why or implausible(self.model, fit.theta_u, self.guard_cfg)
+        except (InputError, np.linalg.LinAlgError) as exc:
+            why = str(exc)
+        if fit is None or why:
+            self.selection["steps"] = before  # the history stays as it was: the refit did not fit
+            self._log_check(t_now, results, f"bias step at {tau / 3600:.1f} h: not taken ({why})")
+            return None
+        self._log_check(t_now, results, f"bias step at {tau / 3600:.1f} h")
+        fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}
+        self._fit_cfg_now = cfg
+        message = (f"bias step of ({', '.join(f'{x:.2f}' for x in record['size_mg'])}) mg at {tau / 3600:.1f} h: "
+                   f"the cells from before it are down-weighted (held-out RMS {record['heldout_rms_mg_before']} -> "
+                   f"{record['heldout_rms_mg_after']} mg on {comp.n_heldout} cells with the step, z "
+                   f"{comp.heldout_z:.1f}; step chi2 {comp.wald_chi2:.1f} on 3)")
+        decision = GuardDecision(True, None, message, record["heldout_rms_mg_after"], record["heldout_rms_mg_before"])
+        cal = self._describe(fit, t_now, int(usable.sum()), decision)
+        cal["bias_step"] = record
+        event = self._publish(t_now, fit, cal, decision)
+        event["mode"] = self.last_refit["mode"] = "bias_step"
+        event["bias_step"] = self.last_refit["bias_step"] = record
+        return event
+
     def _log_check(self, t_now: float, results: list, decision: str | None) -> None:
         """Keep the last 10 checks: ``{"t_s", "decision" (None: no change), "tested": [comparison dicts]}``."""
         self.selection["checks"] = (self.selection.get("checks", []) + [{
@@ -531,7 +665,7 @@ class OnlineCalibrator:
         fit = why = None
         try:
             usable = self._usable()
-            data = self.store.pose_data(usable, t_now, self._age_var())
+            data = self._pose_data(usable, t_now)
             fit, data, cfg, c_noise = self._fit_store(data, usable, self.prior(), theta0)
             why = None if fit.success else f"the fit did not converge: {fit.message}"
             why = why or implausible(target, fit.theta_u, self.guard_cfg)

@@ -73,6 +73,7 @@ from selfcal.boutnoise import BoutNoise, Bouts, estimate_bout_noise, find_bouts
 from selfcal.errors import InputError
 from selfcal.fit import FitConfig, GuardConfig, PoseData, datasheet_prior, fit_poses, implausible, pose_sigma
 from selfcal.models import EFFECT_PARAMS, EVENT_PARAMS, SECONDARY_EFFECTS, ErrorModel, Normalizer
+from selfcal.steps import refine_time, scan_step, step_times, whitened_basis
 
 EFFECTS = tuple(EFFECT_PARAMS)
 #: Every candidate diagnose tests: the model effects, then the events (a bias step at a
@@ -295,17 +296,7 @@ def _refine_step(entry: dict, base_fit, data: _Data, sigma, q, times: np.ndarray
     at the refined time when it fits better. Estimation only: the test keeps the scanned
     time and its Bonferroni count (a finer scan would be more looks)."""
     tau = entry["step_time_s"]
-    k = int(np.searchsorted(times, tau))
-    lo = times[k - 1] if k > 0 else -np.inf
-    hi = times[k + 1] if k + 1 < len(times) else np.inf
-    ts = np.unique(data.t_s)
-    mids = 0.5 * (ts[1:] + ts[:-1])
-    fine = mids[(mids > lo) & (mids < hi)]
-    if len(fine) > max_times:
-        fine = fine[np.linspace(0, len(fine) - 1, max_times).astype(int)]
-    if len(fine) == 0:
-        return
-    tau_f, _ = scan_step(base_fit, data, sigma, q, fine)
+    tau_f = refine_time(base_fit, data.u, data.temp_c, data.t_s, sigma, q, times, tau, max_times)
     if tau_f == tau:
         return
     old = entry["_fit"]
@@ -322,41 +313,6 @@ def _refine_step(entry: dict, base_fit, data: _Data, sigma, q, times: np.ndarray
                  estimate={"unit": unit, "value": dict(zip("xyz", np.round(est, 6).tolist())),
                            "std": dict(zip("xyz", np.round(est_sd, 6).tolist())),
                            "std_independent": dict(zip("xyz", np.round(est_sd_ind, 6).tolist()))})
-
-
-def step_times(t_s: np.ndarray, cfg: DiagnoseConfig) -> np.ndarray:
-    """Candidate times (s) of a bias step: ``step_times`` cuts evenly spaced in pose order
-    from ``step_min_side`` to ``1 - step_min_side`` of the poses, each half way between
-    two consecutive distinct times (sorted, unique, (k,) with k <= step_times)."""
-    ts = np.sort(np.asarray(t_s, dtype=float))
-    n = len(ts)
-    frac = np.linspace(cfg.step_min_side, 1.0 - cfg.step_min_side, cfg.step_times)
-    idx = np.clip(np.rint(frac * n).astype(int), 1, n - 1)
-    cuts = 0.5 * (ts[idx - 1] + ts[idx])
-    return np.unique(cuts[ts[idx - 1] < ts[idx]])
-
-
-def scan_step(base_fit, data: _Data, sigma: np.ndarray, q: np.ndarray, times: np.ndarray) -> tuple[float, np.ndarray]:
-    """The candidate step time (s) whose step explains the base fit's residuals best, and
-    the score statistic of every candidate, (k,).
-
-    At the base fit a bias step at ``tau`` has the Jacobian columns of the offset on the
-    poses from ``tau`` on; whitened and with the base model's columns projected out (``q``),
-    their score statistic ``z' (C'C)^-1 z`` (``z = C' r``, ``r`` the whitened residuals) is
-    the linearised chi2 drop of adding that step.
-    """
-    jb = base_fit.model.residual_jac(base_fit.theta_u, data.u, data.temp_c, data.t_s)[1][:, 0:3] / sigma[:, None]
-    rw = base_fit.residuals_g / sigma
-    score = np.zeros(len(times))
-    for k, tau in enumerate(times.tolist()):  # a handful of candidate times: one (n, 3) product each
-        c = jb * (data.t_s >= tau)[:, None]
-        c = c - q @ (q.T @ c)
-        z = c.T @ rw
-        try:
-            score[k] = float(z @ np.linalg.solve(c.T @ c, z))
-        except np.linalg.LinAlgError:
-            score[k] = 0.0
-    return float(times[int(np.argmax(score))]), score
 
 
 def _noise_residuals(base_fit, data: _Data, effects: list[str]) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
@@ -440,10 +396,7 @@ def _design_effect(covs: tuple[np.ndarray, np.ndarray] | None, sl: slice, estima
 
 def _whitened_projection(fit, data: _Data):
     """Base-model Jacobian columns (whitened) and the projector onto their complement."""
-    sigma = fit.sigma_g
-    jb = fit.model.residual_jac(fit.theta_u, data.u, data.temp_c, data.t_s)[1] / sigma[:, None]
-    q, _ = np.linalg.qr(jb)
-    return sigma, q
+    return whitened_basis(fit, data.u, data.temp_c, data.t_s)
 
 
 def _effect_columns(ext: ErrorModel, effect: str, base_fit, data: _Data, sigma, q) -> np.ndarray:
@@ -579,7 +532,7 @@ def diagnose_poses(
             if len(times) == 0:
                 why_not = "not testable: no time between two poses to place a step"
             else:
-                tau, _ = scan_step(base_fit, data, sigma, q, times)
+                tau, _ = scan_step(base_fit, data.u, data.temp_c, data.t_s, sigma, q, times)
                 looks = len(times)
                 entry["step_time_s"] = tau
                 entry["step_time_h"] = _f((tau - t_ref) / 3600.0)

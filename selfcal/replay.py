@@ -261,6 +261,8 @@ def replay(
                        effect_terms=_effect_terms(last_cal, base_name), model=(last_cal or {}).get("model", model))
             if ev.get("model_change"):
                 row["model_change"] = ev["model_change"]
+            if ev.get("bias_step"):
+                row["bias_step"] = ev["bias_step"]
             refits.append(row)
         done_until = b
         if ckpt:
@@ -291,6 +293,7 @@ def replay(
         "model_final": cal.model.name,
         "selection_checks": int(cal.selection.get("n_checks", 0)),
         "model_switches": [dict(r["model_change"], day=r["day"]) for r in refits if r.get("model_change")],
+        "bias_steps": [dict(r["bias_step"], day=r["day"]) for r in refits if r.get("bias_step")],
         "effect_summary": effect_summary(refits, truth.model_params()),
         "final": None if final is None else {k: final[k] for k in ("params", "std", "status", "version", "undetermined")},
     }

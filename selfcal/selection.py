@@ -62,6 +62,14 @@ class SelectionConfig(BaseModel):
     clip_mg: float = Field(20.0, gt=0, description="held-out residuals are clipped here (one wild cell cannot decide), mg")
     secondary_margin_chi2: float = Field(
         10.0, gt=0, description="a secondary effect beats a supported primary one when its Wald chi2 is this much larger")
+    step: bool = Field(
+        True, description="also look for a bias step (a shock, a battery change) when no effect is supported; once one "
+                          "is found, the cells from before it are down-weighted")
+    step_downweight: float = Field(
+        10.0, ge=1, description="bias step: the sd of a cell from before a step grows by this many times the step's size")
+    step_times: int = Field(9, ge=1, description="bias step: candidate times scanned (the Wald level is alpha / this)")
+    step_min_side: float = Field(
+        0.15, gt=0, lt=0.5, description="bias step: the outer candidate times leave this fraction of the cells outside")
 
     @classmethod
     def from_section(cls, section_: dict | None) -> "SelectionConfig":

@@ -100,7 +100,9 @@ def hidden_effect_case(rng, effect=None, magnitude=None, n_poses=120, days=8.0, 
         raw[:, axis] += 1e-3 * coef * (t_s >= t_step)
     raw += rng.normal(0, 1, raw.shape) * sample_sd_g / np.sqrt(count)[:, None]
     poses = {"mean": raw, "sd": np.full((n_poses, 3), sample_sd_g), "count": count, "t_s": t_s, "temp_c": temp}
-    truth = {"effect": effect, "axis": "xyz"[axis], "coef": coef, "magnitude": magnitude}
+    truth = {"effect": effect, "axis": "xyz"[axis], "coef": coef, "magnitude": magnitude,
+             "sens": sens, "offset": offset.copy()}  # raw = offset + sens @ a (+ the effect)
     if effect == "bias_step":
         truth["t_step_s"] = t_step
+        truth["offset_after"] = offset + 1e-3 * coef * np.eye(3)[axis]
     return poses, truth
