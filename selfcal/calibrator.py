@@ -634,18 +634,25 @@ class OnlineCalibrator:
             self._log_check(t_now, results, f"bias step at {tau / 3600:.1f} h: not taken ({why})")
             return None
         self._log_check(t_now, results, f"bias step at {tau / 3600:.1f} h")
-        fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}
-        self._fit_cfg_now = cfg
         message = (f"bias step of ({', '.join(f'{x:.2f}' for x in record['size_mg'])}) mg at {tau / 3600:.1f} h: "
                    f"the cells from before it are down-weighted (held-out RMS {record['heldout_rms_mg_before']} -> "
                    f"{record['heldout_rms_mg_after']} mg on {comp.n_heldout} cells with the step, z "
                    f"{comp.heldout_z:.1f}; step chi2 {comp.wald_chi2:.1f} on 3)")
+        return self._publish_change(fit, cfg, c_noise, t_now, int(usable.sum()), message, record, "bias_step",
+                                    "bias_step")
+
+    def _publish_change(self, fit: FitResult, cfg: FitConfig, c_noise: float, t_now: float, n_cells: int,
+                        message: str, record: dict, key: str, mode: str) -> dict:
+        """Publish a refit that a model check decided (a switch, a bias step) at once: the
+        version carries ``record`` under ``key`` and the event says ``mode``."""
+        fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}
+        self._fit_cfg_now = cfg
         decision = GuardDecision(True, None, message, record["heldout_rms_mg_after"], record["heldout_rms_mg_before"])
-        cal = self._describe(fit, t_now, int(usable.sum()), decision)
-        cal["bias_step"] = record
+        cal = self._describe(fit, t_now, n_cells, decision)
+        cal[key] = record
         event = self._publish(t_now, fit, cal, decision)
-        event["mode"] = self.last_refit["mode"] = "bias_step"
-        event["bias_step"] = self.last_refit["bias_step"] = record
+        event["mode"] = self.last_refit["mode"] = mode
+        event[key] = self.last_refit[key] = record
         return event
 
     def _log_check(self, t_now: float, results: list, decision: str | None) -> None:
@@ -682,20 +689,13 @@ class OnlineCalibrator:
         if what == "added":
             added.append(comp.effect)
         self.selection["added"] = added
-        fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}
-        self._fit_cfg_now = cfg
         record = change_record(comp, what, old_model.name, target.name)
         message = (f"model {old_model.name} -> {target.name}: {comp.effect} {what} (held-out RMS "
                    f"{record['heldout_rms_mg_before']} -> {record['heldout_rms_mg_after']} mg on {comp.n_heldout} "
                    f"cells, z {comp.heldout_z:.1f} for the larger model; effect terms chi2 {comp.wald_chi2:.1f} "
                    f"on {comp.wald_dof})")
-        decision = GuardDecision(True, None, message, record["heldout_rms_mg_after"], record["heldout_rms_mg_before"])
-        cal = self._describe(fit, t_now, int(usable.sum()), decision)
-        cal["model_change"] = record
-        event = self._publish(t_now, fit, cal, decision)
-        event["mode"] = self.last_refit["mode"] = "model_switch"
-        event["model_change"] = self.last_refit["model_change"] = record
-        return event
+        return self._publish_change(fit, cfg, c_noise, t_now, int(usable.sum()), message, record, "model_change",
+                                    "model_switch")
 
     def _guard(self, fit: FitResult, data: PoseData, usable: np.ndarray, prior: Prior) -> GuardDecision:
         g = self.guard_cfg
