@@ -482,12 +482,13 @@ class OnlineCalibrator:
         prepared: dict[bool, tuple] = {}
 
         def cells(with_temp: bool) -> tuple:
-            """(mask, data with the noise the current model's fit shows, fit config, small-model CV cache)."""
+            """(mask, data with the noise the current model's fit shows, fit config, small-model CV cache,
+            the current model's fit on them)."""
             if with_temp not in prepared:
                 mask = np.isfinite(temps) if with_temp else np.ones(len(self.store), dtype=bool)
                 data = self._pose_data(mask, t_now)
-                _, data, cfg, _ = self._fit_store(data, mask, self.prior(), theta)
-                prepared[with_temp] = (mask, data, cfg, {})
+                fit, data, cfg, _ = self._fit_store(data, mask, self.prior(), theta)
+                prepared[with_temp] = (mask, data, cfg, {}, fit)
             return prepared[with_temp]
 
         try:
@@ -495,7 +496,7 @@ class OnlineCalibrator:
             # drop: an effect selection added that no longer pays
             for e in [x for x in self.selection.get("added", []) if x in self.model.effects]:
                 small = self.model.with_effects(tuple(x for x in self.model.effects if x != e))
-                mask, data, cfg, _ = cells(self.model.uses_temperature)
+                mask, data, cfg, _, _ = cells(self.model.uses_temperature)
                 comp = compare(small, self.model, data, folds_all[mask], prior_small=self._prior_of(small),
                                prior_large=self.prior(), theta_small=small.extend_theta(theta, self.model),
                                fit_cfg=cfg, clip_g=clip, clusters=clusters_all[mask],
@@ -509,7 +510,7 @@ class OnlineCalibrator:
                 if e in self.model.effects or not self.model.takes(e):
                     continue
                 large = self._candidate(e)
-                mask, data, cfg, cv_small = cells(large.uses_temperature)
+                mask, data, cfg, cv_small, _ = cells(large.uses_temperature)
                 if mask.sum() < c.min_cells or selection_applicable(e, data, c):
                     continue
                 comp = compare(self.model, large, data, folds_all[mask], prior_small=self.prior(),
@@ -581,7 +582,7 @@ class OnlineCalibrator:
         is tested like an effect (:func:`compare`: Wald test of the step at ``alpha /
         step_times``, held-out cells). ``(step time s, comparison)`` when supported, else None."""
         c = self.sel_cfg
-        mask, data, cfg, cv_small = cells(self.model.uses_temperature)
+        mask, data, cfg, cv_small, small = cells(self.model.uses_temperature)
         steps = self.selection.get("steps") or []
         recent = data.t_s > (float(steps[-1]["t_step_s"]) if steps else -np.inf)
         if recent.sum() < c.min_cells or float(np.ptp(data.t_s[recent])) < c.min_time_span_days * 86400.0:
@@ -589,7 +590,6 @@ class OnlineCalibrator:
         times = step_times(data.t_s[recent], c)
         if len(times) == 0:
             return None
-        small = fit_poses(self.model, data, prior=self.prior(), theta0_u=theta, cfg=cfg, robust=True)
         sigma, q = whitened_basis(small, data.mean, data.temp_c, data.t_s)
         tau, _ = scan_step(small, data.mean, data.temp_c, data.t_s, sigma, q, times)
         large = ErrorModel(f"{self.model.name}+bias_step", self.model.temp_ref_c, self.model.t_ref_s, tau)
