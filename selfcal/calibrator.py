@@ -391,8 +391,9 @@ class OnlineCalibrator:
 
     def _pose_data(self, mask: np.ndarray, t_now: float) -> PoseData:
         """The store's cells ``mask`` as poses to fit: aged (process noise), and, once a bias
-        step was found, the cells with data from before it down-weighted: their variance
-        grows by the step's squared size and its variance (their offset is not today's)."""
+        step was found, the cells with data from before it down-weighted: their sd grows by
+        ``[selection] step_downweight`` times the sizes of the steps since (their offset is
+        not today's)."""
         data = self.store.pose_data(mask, t_now, self._age_var())
         steps = self.selection.get("steps") or []
         if not steps:
@@ -554,7 +555,7 @@ class OnlineCalibrator:
         their own weights (a step found soon after it happened is known from few cells; the
         down-weighting of the cells before it follows what the data say now)."""
         steps = self.selection.get("steps") or []
-        if not steps:
+        if not steps or not self.model.takes("bias_step"):
             return
         last = steps[-1]
         since = float(steps[-2]["t_step_s"]) if len(steps) > 1 else -np.inf
@@ -582,6 +583,8 @@ class OnlineCalibrator:
         is tested like an effect (:func:`compare`: Wald test of the step at ``alpha /
         step_times``, held-out cells). ``(step time s, comparison)`` when supported, else None."""
         c = self.sel_cfg
+        if not self.model.takes("bias_step"):  # seed9 (a demonstration model) takes nothing
+            return None
         mask, data, cfg, cv_small, small = cells(self.model.uses_temperature)
         steps = self.selection.get("steps") or []
         recent = data.t_s > (float(steps[-1]["t_step_s"]) if steps else -np.inf)

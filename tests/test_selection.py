@@ -240,3 +240,14 @@ def test_no_bias_step_on_effect_free_devices(seed):
     events = cal.feed_poses(poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"])
     assert cal.selection["n_checks"] >= 10
     assert not [e for e in events if e.get("mode") == "bias_step"] and not cal.selection.get("steps")
+
+
+def test_a_model_that_takes_no_step_still_decides_its_checks():
+    """seed9 (a demonstration model) takes no effect and no step: its checks are still
+    decided (asking for a step it cannot take must not make every check fail)."""
+    poses, _ = _step_case(1, 2.0)
+    cal = OnlineCalibrator(load_config(None), "seed9")
+    cal.feed_poses(poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"])
+    assert cal.selection["n_checks"] >= 10
+    assert not [c for c in cal.selection["checks"] if str(c["decision"]).startswith("not decided")]
+    assert not cal.selection.get("steps")
