@@ -64,6 +64,7 @@ from selfcal.selection import (
     change_record,
     compare,
     extend_prior,
+    rounded,
     stops_paying,
     supports,
     wald_not_significant_to_keep,
@@ -614,25 +615,13 @@ class OnlineCalibrator:
         record = {"change": "bias_step", "t_step_s": float(tau), "found_t_s": float(t_now),
                   "size_mg": [round(float(x), 4) for x in size * 1e3],
                   "sd_mg": [round(float(x), 4) for x in np.sqrt(np.diag(cov)) * 1e3],
-                  "heldout_rms_mg_before": None if not np.isfinite(comp.heldout_rms_small_mg)
-                  else round(comp.heldout_rms_small_mg, 4),
-                  "heldout_rms_mg_after": None if not np.isfinite(comp.heldout_rms_large_mg)
-                  else round(comp.heldout_rms_large_mg, 4),
-                  "heldout_z": None if not np.isfinite(comp.heldout_z) else round(comp.heldout_z, 3),
-                  "n_heldout_cells": comp.n_heldout, "wald_chi2": round(comp.wald_chi2, 3)}
+                  "heldout_rms_mg_before": rounded(comp.heldout_rms_small_mg, 4),
+                  "heldout_rms_mg_after": rounded(comp.heldout_rms_large_mg, 4),
+                  "heldout_z": rounded(comp.heldout_z, 3), "n_heldout_cells": comp.n_heldout, "wald_chi2": round(comp.wald_chi2, 3)}
         before = list(self.selection.get("steps") or [])
         self.selection["steps"] = before + [dict(record)]  # re-estimated later; the version keeps this
-        fit = why = None
-        try:
-            usable = self._usable()
-            data = self._pose_data(usable, t_now)
-            fit, data, cfg, c_noise = self._fit_store(data, usable, self.prior(),
-                                                      np.asarray(self.current["theta_u"], float))
-            why = None if fit.success else f"the fit did not converge: {fit.message}"
-            why = why or implausible(self.model, fit.theta_u, self.guard_cfg)
-        except (InputError, np.linalg.LinAlgError) as exc:
-            why = str(exc)
-        if fit is None or why:
+        fit, cfg, c_noise, n_cells, why = self._refit_for_change(t_now, np.asarray(self.current["theta_u"], float))
+        if why:
             self.selection["steps"] = before  # the history stays as it was: the refit did not fit
             self._log_check(t_now, results, f"bias step at {tau / 3600:.1f} h: not taken ({why})")
             return None
@@ -641,8 +630,19 @@ class OnlineCalibrator:
                    f"the cells from before it are down-weighted (held-out RMS {record['heldout_rms_mg_before']} -> "
                    f"{record['heldout_rms_mg_after']} mg on {comp.n_heldout} cells with the step, z "
                    f"{comp.heldout_z:.1f}; step chi2 {comp.wald_chi2:.1f} on 3)")
-        return self._publish_change(fit, cfg, c_noise, t_now, int(usable.sum()), message, record, "bias_step",
-                                    "bias_step")
+        return self._publish_change(fit, cfg, c_noise, t_now, n_cells, message, record, "bias_step", "bias_step")
+
+    def _refit_for_change(self, t_now: float, theta0: np.ndarray) -> tuple:
+        """Refit the store under the current model (and its step down-weighting) for a change a
+        check decided; ``(fit, fit config, cell noise factor, cells, why not)``, ``why not``
+        None when the fit converged and is plausible."""
+        try:
+            usable = self._usable()
+            fit, _, cfg, c_noise = self._fit_store(self._pose_data(usable, t_now), usable, self.prior(), theta0)
+        except (InputError, np.linalg.LinAlgError) as exc:
+            return None, None, 1.0, 0, str(exc)
+        why = None if fit.success else f"the fit did not converge: {fit.message}"
+        return fit, cfg, c_noise, int(usable.sum()), why or implausible(self.model, fit.theta_u, self.guard_cfg)
 
     def _publish_change(self, fit: FitResult, cfg: FitConfig, c_noise: float, t_now: float, n_cells: int,
                         message: str, record: dict, key: str, mode: str) -> dict:
@@ -672,19 +672,13 @@ class OnlineCalibrator:
             self.seeded_prior = {"mean": p.mean.tolist(), "cov": p.cov.tolist()}
         theta0 = target.extend_theta(np.asarray(self.current["theta_u"], float), self.model)
         self.model = target
-        fit = why = None
         try:
-            usable = self._usable()
-            data = self._pose_data(usable, t_now)
-            fit, data, cfg, c_noise = self._fit_store(data, usable, self.prior(), theta0)
-            why = None if fit.success else f"the fit did not converge: {fit.message}"
-            why = why or implausible(target, fit.theta_u, self.guard_cfg)
-        except (InputError, np.linalg.LinAlgError) as exc:
-            why = str(exc)
-        finally:
-            if fit is None or why:
-                self.model, self.seeded_prior = old_model, old_seed  # stay: the switch did not fit
-        if fit is None or why:
+            fit, cfg, c_noise, n_cells, why = self._refit_for_change(t_now, theta0)
+        except BaseException:
+            self.model, self.seeded_prior = old_model, old_seed  # stay, whatever went wrong
+            raise
+        if why:
+            self.model, self.seeded_prior = old_model, old_seed  # stay: the switch did not fit
             self._log_check(t_now, results, f"{what} {comp.effect}: not switched ({why})")
             return None
         self._log_check(t_now, results, f"{what} {comp.effect}")
@@ -697,7 +691,7 @@ class OnlineCalibrator:
                    f"{record['heldout_rms_mg_before']} -> {record['heldout_rms_mg_after']} mg on {comp.n_heldout} "
                    f"cells, z {comp.heldout_z:.1f} for the larger model; effect terms chi2 {comp.wald_chi2:.1f} "
                    f"on {comp.wald_dof})")
-        return self._publish_change(fit, cfg, c_noise, t_now, int(usable.sum()), message, record, "model_change",
+        return self._publish_change(fit, cfg, c_noise, t_now, n_cells, message, record, "model_change",
                                     "model_switch")
 
     def _guard(self, fit: FitResult, data: PoseData, usable: np.ndarray, prior: Prior) -> GuardDecision:

@@ -106,14 +106,16 @@ class Comparison:
 
     def to_dict(self) -> dict:
         """JSON-ready summary (mg, z, chi2; None where the cross-validation was skipped)."""
-        def num(x: float, nd: int):
-            return None if not np.isfinite(x) else round(float(x), nd)
-
-        return {"effect": self.effect, "small": self.small, "large": self.large, "heldout_z": num(self.heldout_z, 3),
-                "heldout_rms_mg_before": num(self.heldout_rms_small_mg, 4),
-                "heldout_rms_mg_after": num(self.heldout_rms_large_mg, 4),
-                "heldout_gain_rel": num(self.gain_rel, 4), "n_heldout_cells": self.n_heldout,
+        return {"effect": self.effect, "small": self.small, "large": self.large, "heldout_z": rounded(self.heldout_z, 3),
+                "heldout_rms_mg_before": rounded(self.heldout_rms_small_mg, 4),
+                "heldout_rms_mg_after": rounded(self.heldout_rms_large_mg, 4),
+                "heldout_gain_rel": rounded(self.gain_rel, 4), "n_heldout_cells": self.n_heldout,
                 "wald_chi2": round(self.wald_chi2, 3), "wald_dof": self.wald_dof}
+
+
+def rounded(x: float, nd: int) -> float | None:
+    """``x`` rounded to ``nd`` decimals for a JSON record; None when it is not finite (NaN: not measured)."""
+    return None if not np.isfinite(x) else round(float(x), nd)
 
 
 def extend_prior(prior: Prior, model: ErrorModel, target: ErrorModel, datasheet: Prior) -> Prior:
@@ -230,12 +232,9 @@ def change_record(c: Comparison, change: str, from_model: str, to_model: str) ->
     before, after = ((c.heldout_rms_small_mg, c.heldout_rms_large_mg) if change == "added"
                      else (c.heldout_rms_large_mg, c.heldout_rms_small_mg))
 
-    def num(x: float, nd: int):
-        return None if not np.isfinite(x) else round(float(x), nd)
-
     return {"change": change, "effect": c.effect, "from_model": from_model, "to_model": to_model,
-            "heldout_rms_mg_before": num(before, 4), "heldout_rms_mg_after": num(after, 4),
-            "heldout_z_larger_model": num(c.heldout_z, 3), "n_heldout_cells": c.n_heldout,
+            "heldout_rms_mg_before": rounded(before, 4), "heldout_rms_mg_after": rounded(after, 4),
+            "heldout_z_larger_model": rounded(c.heldout_z, 3), "n_heldout_cells": c.n_heldout,
             "wald_chi2": round(c.wald_chi2, 3), "wald_dof": c.wald_dof}
 
 
