@@ -15,9 +15,9 @@ errors, white noise and 3.91 mg quantisation; noise-free readings by ``sensor_me
   (100 samples at 20 Hz), times over 3 days, temperatures 15-35 degC;
 * ``sim_mix``    — the insole paper's mix: 6 near-axis poses (O_cor, tilted ~3 deg)
   and 18 others (``tests/posegen.insole_like_directions``);
-* the suffix ``+fx`` enables the four hidden effects of the simulator (temperature
-  bias and scale, time drift of the bias, scale non-linearity) at their default
-  magnitudes.
+* the suffix ``+fx`` enables the simulator's continuous effects (temperature bias and
+  scale, time drift of the bias, scale non-linearity, cross-axis tempcos) at their
+  default magnitudes (not the bias step, an event).
 
 Real sets (``data/``): the 84-h GGIR wrist poses table, and the still windows
 (``selfcal.detect.StaticDetector``, rate from the recording, as ``selfcal.pipeline``
@@ -36,7 +36,7 @@ import numpy as np
 from selfcal.fit import guess_normalizer, sphere_normalizer
 from selfcal.models import Normalizer
 from selfcal.sim import SimConfig, draw_sensor_truth, sensor_mean, simulate_poses
-from selfcal.sim.config import EFFECT_NAMES
+from selfcal.sim.config import CONTINUOUS_EFFECTS
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from posegen import insole_like_directions, spread_directions  # noqa: E402
@@ -93,7 +93,7 @@ class PoseSet:
 
 def _sim_config(effects: bool) -> SimConfig:
     cfg = SimConfig()
-    return cfg.with_effects(list(EFFECT_NAMES)) if effects else cfg
+    return cfg.with_effects(list(CONTINUOUS_EFFECTS)) if effects else cfg
 
 
 def thin_poses(a_dir: np.ndarray, temp_c: np.ndarray | None, angle_deg: float = 3.0, temp_step_c: float = 2.0) -> np.ndarray:

@@ -85,7 +85,10 @@ class TruthMetrics:
     def __call__(self, model: ErrorModel, theta_u: np.ndarray, t_s: float) -> dict[str, float]:
         theta_u = np.asarray(theta_u, dtype=float)
         base = theta_u[: len(BASE_NAMES)] if model.base == "affine9" else model.from_linear(*model.linear(theta_u))
-        rel = np.abs(base[:9] - self.truth_params) / np.maximum(np.abs(self.truth_params), 1e-12)
+        truth_params = self.truth_params
+        if np.isfinite(self.sensor.step_at_s) and t_s >= self.sensor.step_at_s:  # the sensor as it now is
+            truth_params = np.array([self.sensor.params_at(t_s)[n] for n in BASE_NAMES])
+        rel = np.abs(base[:9] - truth_params) / np.maximum(np.abs(truth_params), 1e-12)
         n = len(self.dirs)
         temp = np.full(n, self.sensor.temp_ref_c)
         tt = np.full(n, float(t_s))
@@ -288,12 +291,16 @@ def replay(
         "time_to_calibrated_h": first_calibrated_h,
         "n_still_windows": int(len(poses)),
         "wall_s": time.perf_counter() - t0_wall,
-        "truth": {"params": truth.params(), "effects": truth.model_params()},
+        "truth": {"params": truth.params(), "effects": truth.model_params(),
+                  "bias_step": None if not np.isfinite(truth.step_at_s) else {
+                      "t_s": truth.step_at_s, "day": truth.step_at_s / SECONDS_PER_DAY,
+                      "size_mg": truth.effects["bias_step"].tolist()}},
         "soaks": soak_info,
         "model_final": cal.model.name,
         "selection_checks": int(cal.selection.get("n_checks", 0)),
         "model_switches": [dict(r["model_change"], day=r["day"]) for r in refits if r.get("model_change")],
         "bias_steps": [dict(r["bias_step"], day=r["day"]) for r in refits if r.get("bias_step")],
+        "bias_steps_final": [dict(x) for x in cal.selection.get("steps", [])],
         "effect_summary": effect_summary(refits, truth.model_params()),
         "final": None if final is None else {k: final[k] for k in ("params", "std", "status", "version", "undetermined")},
     }
@@ -321,6 +328,43 @@ def effect_summary(rows: list[dict], truth_effects: dict[str, float]) -> dict[st
         out[n] = {"true": true, "first_determined_day": first, "final": last["est"], "final_sd": last["sd"],
                   "final_error": err, "final_error_sd": abs(err) / last["sd"] if last["sd"] > 0 else float("nan")}
     return out
+
+
+def step_summary(results: list[dict]) -> dict:
+    """Bias steps found by the replays of a fleet, against the simulated ones.
+
+    A device with a true step has it *found* when a step is published after the true time;
+    a step published before it (or on a device without one) is *false*. For the devices
+    where it is found: the delay (days from the step to the first publication), the error
+    of the step's time (h) and of its size (mg, the largest axis; and whether every axis is
+    within 2 of its reported sds), as re-estimated at the end of the replay.
+    """
+    delays, t_err, size_err, size_z, size_sd, false, with_step, found = [], [], [], [], [], 0, 0, 0
+    for r in results:
+        true = (r.get("truth") or {}).get("bias_step")
+        pubs = r.get("bias_steps", [])
+        if true is None:
+            false += len(pubs) > 0
+            continue
+        with_step += 1
+        false += any(p["found_t_s"] < true["t_s"] for p in pubs)
+        after = [p for p in pubs if p["found_t_s"] >= true["t_s"]]
+        if not after:
+            continue
+        found += 1
+        delays.append((after[0]["found_t_s"] - true["t_s"]) / SECONDS_PER_DAY)
+        final = min(r.get("bias_steps_final") or after, key=lambda p: abs(p["t_step_s"] - true["t_s"]))
+        t_err.append(abs(final["t_step_s"] - true["t_s"]) / 3600.0)
+        err = np.subtract(final["size_mg"], true["size_mg"])
+        size_err.append(float(np.max(np.abs(err))))
+        size_sd.append(float(np.max(final["sd_mg"])))
+        with np.errstate(divide="ignore"):
+            size_z.append(float(np.max(np.abs(err) / np.asarray(final["sd_mg"], float))))
+    med = lambda x: float(np.median(x)) if x else None  # noqa: E731
+    return {"devices": len(results), "with_step": with_step, "found": found, "false": int(false),
+            "median_delay_days": med(delays), "median_time_error_h": med(t_err),
+            "median_size_error_mg": med(size_err), "max_size_error_mg": max(size_err) if size_err else None,
+            "size_within_2sd": int(sum(z <= 2.0 for z in size_z)), "median_size_sd_mg": med(size_sd)}
 
 
 def _replay_one(kwargs: dict) -> dict:

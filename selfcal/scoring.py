@@ -122,6 +122,10 @@ class TruthScorer:
     def score(self, calibration: dict) -> dict:
         """One published version: :func:`version_row` plus ``true_mg`` and ``z`` (per parameter of its model)."""
         model, truth_u = self._of(calibration.get("model", self.model.name))
+        t_s = float(calibration["t_s"])
+        if t_s >= self.sensor.step_at_s:  # after a bias step the truth is the sensor as it now is
+            known = {**self.sensor.params_at(t_s), **self.truth["effect_params"]}
+            truth_u = model.from_dict({k: v for k, v in known.items() if k in set(model.param_names)})
         theta = model.from_dict(calibration["params"])
         std = np.array([calibration["std"][n] for n in model.param_names])
         row = version_row(calibration)

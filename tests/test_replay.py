@@ -150,3 +150,27 @@ def test_unknown_or_missing_engine_is_a_clear_error(capsys):
         import ray  # noqa: F401
     except ImportError:
         assert "--engine ray needs ray" in err
+
+
+@pytest.mark.slow
+def test_a_simulated_bias_step_is_found_online_and_scored_against_the_sensor_as_it_now_is():
+    """The simulator's step (``--effects bias_step``) through the calibrator's own schedule:
+    found after it happened, its time and size (within their sds), and the final version
+    scored against the offset after the step."""
+    import copy
+
+    from selfcal.replay import step_summary
+
+    cfg = copy.deepcopy(CFG)
+    cfg.setdefault("sim", {}).setdefault("effects", {})["bias_step"] = {"at_day": 5.0}
+    outs = [replay(days=12, refit_every_days=0, seed=seed, config=cfg, effects=("bias_step",)) for seed in (2, 3)]
+    st = step_summary(outs)
+    assert st["with_step"] == 2 and st["found"] == 2 and st["false"] == 0
+    assert st["median_time_error_h"] < 3.0 and st["size_within_2sd"] == 2
+    for out in outs:
+        assert out["truth"]["bias_step"]["day"] == 5.0
+        assert out["bias_steps"][0]["day"] > 5.0 and out["model_final"] == "affine9"
+        final = out["bias_steps_final"][-1]
+        err = np.subtract(final["size_mg"], out["truth"]["bias_step"]["size_mg"])
+        assert np.all(np.abs(err) <= 3 * np.asarray(final["sd_mg"]) + 0.05)
+        assert out["refits"][-1]["sphere_norm_rms_mg"] < 0.3  # against the offset after the step

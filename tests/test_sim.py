@@ -9,7 +9,7 @@ import pytest
 
 from selfcal.errors import InputError
 from selfcal.sim import (
-    EFFECT_NAMES, SimConfig, Simulation, SimTruth, canonical_params, canonical_qr, make_schedule,
+    EFFECT_NAMES, SensorTruth, SimConfig, Simulation, SimTruth, canonical_params, canonical_qr, make_schedule,
 )
 from selfcal.sim.motion import gait_force, gravity_foot, world_to_foot
 from selfcal.sim.temperature import segment_start_states, temperature_at
@@ -157,6 +157,40 @@ def test_scale_nonlinearity_is_quadratic_in_the_true_force():
     expected = (1e-3 * np.array(coef) * a.a_true_g**2) @ minv.T
     np.testing.assert_allclose(a.acc_g - b.acc_g, expected, atol=1e-12)
     assert np.max(np.abs(a.a_true_g)) > 1.5  # walking reaches the quadratic range
+
+
+def test_bias_step_adds_its_size_from_its_time_on():
+    coef = (1.5, -2.0, 0.7)  # mg
+    base = worn_config(sensor={"lsb_mg": 0.0, "range_g": 100.0}, ble={"packet_loss_rate": 0.0})
+    on = base.updated(effects={"bias_step": {"enabled": True, "coefficients": coef, "at_day": 0.03}})
+    s_on, s_off = Simulation(on, np.random.default_rng(21), days=0.06), Simulation(base, np.random.default_rng(21), days=0.06)
+    a, b = s_on.samples(), s_off.samples()
+    truth = s_on.truth.sensor
+    after = a.t_s >= 0.03 * 86400
+    assert 0 < after.sum() < len(after) and truth.step_at_s == 0.03 * 86400
+    np.testing.assert_allclose(a.acc_g - b.acc_g, 1e-3 * after[:, None] * np.array(coef), atol=1e-12)
+    # the truth is the sensor as it is at a time: before, the offset; after, with the step
+    np.testing.assert_array_equal(truth.offset_at(0.0), truth.offset)
+    np.testing.assert_allclose(truth.offset_at(0.05 * 86400), truth.offset + 1e-3 * np.array(coef))
+    assert truth.params_at(0.05 * 86400)["bz"] == pytest.approx(truth.params()["bz"] + 0.7e-3)
+    assert "sbx" not in truth.model_params()  # a step is not a term of a continuous model
+    back = SensorTruth.from_dict(json.loads(json.dumps(truth.to_dict())))
+    assert back.step_at_s == truth.step_at_s and back.enabled == ("bias_step",)
+    assert SensorTruth.from_dict(json.loads(json.dumps(s_off.truth.sensor.to_dict()))).step_at_s == np.inf
+    # the poses level has it too (a window's mean at its mid time)
+    p_on, p_off = s_on.poses(), s_off.poses()
+    mid_after = p_on.t_s + p_on.duration_s / 2 >= 0.03 * 86400
+    d = p_on.mean_g - p_off.mean_g
+    assert np.abs(d[~mid_after]).max() == 0.0
+    np.testing.assert_allclose(d[mid_after], 1e-3 * np.tile(coef, (mid_after.sum(), 1)), atol=1e-12)
+
+
+def test_an_effect_section_without_magnitude_keeps_its_default():
+    cfg = SimConfig.from_section({"effects": {"bias_step": {"at_day": 4.0}, "temperature_cross": {"enabled": True}}})
+    assert cfg.effects.bias_step.magnitude == (2.0, 2.0, 2.0) and cfg.effects.bias_step.at_day == 4.0
+    assert cfg.effects.temperature_cross.magnitude == (100.0, 100.0, 100.0)
+    with pytest.raises(InputError, match="at_day"):
+        SimConfig.from_section({"effects": {"bias_step": {"at_day": -1.0}}})
 
 
 def test_enabling_an_effect_changes_no_other_draw():

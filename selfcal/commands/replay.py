@@ -67,7 +67,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from selfcal.replay import replay, replay_fleet
+    from selfcal.replay import replay, replay_fleet, step_summary
 
     given = [k for k in SIM_DEFAULTS if getattr(args, k) is not None and getattr(args, k) is not False]  # 0 is given
     if args.recording is not None:
@@ -119,6 +119,7 @@ def run(args) -> int:
             },
             "time_to_calibrated_h": [r["time_to_calibrated_h"] for r in results],
             "model_selection": selection_summary(results),
+            "bias_steps": step_summary(results),
             "results": results,
         }
     if args.json:
@@ -133,6 +134,7 @@ def run(args) -> int:
             if sel["median_first_switch_day"] is not None else "no switch"
         print(f"model selection: {sel['switched']}/{args.devices} devices switched ({day}); final models "
               + ", ".join(f"{m} x{n}" for m, n in sel["final_models"].items()))
+        print_step_summary(out["bias_steps"])
         return 0
     first = (f"first 'calibrated' after {out['time_to_calibrated_h']:.1f} h" if out["time_to_calibrated_h"] is not None
              else "never 'calibrated'")
@@ -148,12 +150,30 @@ def run(args) -> int:
         print(f"model switch on day {sw['day']:.2f}: {sw['from_model']} -> {sw['to_model']} ({sw['change']} "
               f"{sw['effect']}: held-out z {sw['heldout_z_larger_model']}, RMS {sw['heldout_rms_mg_before']} -> "
               f"{sw['heldout_rms_mg_after']} mg, effect terms chi2 {sw['wald_chi2']} on {sw['wald_dof']})")
+    true = (out.get("truth") or {}).get("bias_step")
+    if true:
+        print(f"simulated bias step on day {true['day']:.2f}: ({', '.join(f'{x:.3f}' for x in true['size_mg'])}) mg")
+    for st in out.get("bias_steps_final", []):
+        print(f"bias step found at {st['t_step_s'] / 86400:.2f} days: ({', '.join(f'{x:.3f}' for x in st['size_mg'])})"
+              f" +- ({', '.join(f'{x:.3f}' for x in st['sd_mg'])}) mg (re-estimated at the end)")
     for name, e in out["effect_summary"].items():
         day = f"determined on day {e['first_determined_day']:.2f}" if e["first_determined_day"] is not None \
             else "never determined"
         print(f"{name}: {day}; final {_term(name, e['final'])} +- {_term(name, e['final_sd'])}, true "
               f"{_term(name, e['true'])}, error {_term(name, e['final_error'])} ({e['final_error_sd']:.2f} sd)")
     return 0
+
+
+def print_step_summary(st: dict) -> None:
+    """One line on the bias steps of a fleet replay (:func:`selfcal.replay.step_summary`)."""
+    line = f"bias steps: {st['false']}/{st['devices']} devices with a false step"
+    if st["with_step"]:
+        line += f"; found on {st['found']}/{st['with_step']} devices with a simulated step"
+        if st["found"]:
+            line += (f" (median {st['median_delay_days']:.2f} days after it; time error median "
+                     f"{st['median_time_error_h']:.2f} h; size error median {st['median_size_error_mg']:.3f} mg, "
+                     f"max {st['max_size_error_mg']:.3f} mg, within 2 sd on {st['size_within_2sd']}/{st['found']})")
+    print(line)
 
 
 def selection_summary(results: list[dict]) -> dict:

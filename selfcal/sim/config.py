@@ -14,7 +14,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from selfcal.errors import InputError
 
 #: Names of the sensor effects, in the order used everywhere (truth, CLI, docs).
-EFFECT_NAMES = ("temperature_bias", "temperature_scale", "time_drift_bias", "scale_nonlinearity", "temperature_cross")
+EFFECT_NAMES = ("temperature_bias", "temperature_scale", "time_drift_bias", "scale_nonlinearity", "temperature_cross",
+                "bias_step")
+#: Effects that happen at one moment (``at_day``) rather than all along.
+EVENT_EFFECTS = ("bias_step",)
+#: The effects that act all along (the others).
+CONTINUOUS_EFFECTS = tuple(n for n in EFFECT_NAMES if n not in EVENT_EFFECTS)
 
 Triple = tuple[float, float, float]
 
@@ -193,8 +198,14 @@ def _eff(m: float) -> EffectConfig:
     return EffectConfig(magnitude=(m, m, m))
 
 
+class StepConfig(EffectConfig):
+    """A bias step: the offset jumps by the drawn (or given) size, in mg per axis, at ``at_day``."""
+
+    at_day: float = Field(10.0, ge=0, description="when the offset jumps (days since the start)")
+
+
 class EffectsConfig(_Strict):
-    """The effects; units: mg/degC, ppm/degC, mg/day, mg/g^2, ppm/degC."""
+    """The effects; units: mg/degC, ppm/degC, mg/day, mg/g^2, ppm/degC, mg."""
 
     temp_ref_c: float = 25.0
     temperature_bias: EffectConfig = _eff(0.5)          # mg/degC
@@ -205,6 +216,24 @@ class EffectsConfig(_Strict):
     # a bending package's order of magnitude (the datasheets give cross-axis sensitivity,
     # ~1-2 %, but not its tempco: this is a stress case, not a typical part)
     temperature_cross: EffectConfig = _eff(100.0)       # ppm/degC
+    # a bias that jumps once (a shock, a battery change, a re-soldered board): 1-2 mg per
+    # axis, the order of the turn-on repeatability consumer datasheets give (+-1-5 mg)
+    bias_step: StepConfig = StepConfig(magnitude=(2.0, 2.0, 2.0))  # mg, at at_day
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_magnitudes(cls, data: Any) -> Any:
+        """An effect given without ``magnitude`` (``[sim.effects.bias_step] at_day = 4``) keeps
+        its own default magnitude, not the zero of a bare :class:`EffectConfig`."""
+        if not isinstance(data, dict):
+            return data
+        out = dict(data)
+        for name, value in data.items():
+            field = cls.model_fields.get(name)
+            if isinstance(value, dict) and "magnitude" not in value and field is not None \
+                    and isinstance(field.default, EffectConfig):
+                out[name] = {**value, "magnitude": field.default.magnitude}
+        return out
 
 
 class BleConfig(_Strict):

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from selfcal.sim.config import EFFECT_NAMES, SimConfig
+from selfcal.sim.config import EFFECT_NAMES, EVENT_EFFECTS, SimConfig
 
 #: Unit of each effect coefficient in the config and in the truth (``coefficients``).
 EFFECT_UNITS = {
@@ -35,6 +35,7 @@ EFFECT_UNITS = {
     "time_drift_bias": "mg/day",
     "scale_nonlinearity": "mg/g^2",
     "temperature_cross": "ppm/degC",
+    "bias_step": "mg",
 }
 
 #: The same coefficient in the units and parameter names of ``selfcal.models``
@@ -45,6 +46,7 @@ EFFECT_MODEL_PARAMS = {
     "time_drift_bias": (1e-3, ("dbx", "dby", "dbz")),       # g/day
     "scale_nonlinearity": (1e-3, ("qx", "qy", "qz")),       # 1/g
     "temperature_cross": (1e-6, ("tnxy", "tnxz", "tnyz")),  # 1/degC
+    "bias_step": (1e-3, ("sbx", "sby", "sbz")),             # g, from step_at_s on
 }
 
 #: Effects drawn from the device's own stream of random numbers (the first four). Effects
@@ -124,6 +126,9 @@ class SensorTruth:
         Effects switched on.
     temp_ref_c : float
         Reference temperature of the temperature effects (degC).
+    step_at_s : float
+        When the bias step (``effects["bias_step"]``, mg) happens, s since the start;
+        ``inf`` when there is none.
     """
 
     matrix: np.ndarray
@@ -134,15 +139,28 @@ class SensorTruth:
     noise_sd_g: np.ndarray = field(default_factory=lambda: np.zeros(3))
     lsb_g: float = 0.0
     range_g: float = np.inf
+    step_at_s: float = np.inf
 
     def params(self) -> dict[str, float]:
-        """Canonical identifiable parameters (see :func:`canonical_params`)."""
+        """Canonical identifiable parameters (see :func:`canonical_params`) at the start."""
         return canonical_params(self.matrix, self.offset)
+
+    def offset_at(self, t_s: float) -> np.ndarray:
+        """The offset (g, raw unit, shape (3,)) at time ``t_s``: with the bias step once it happened."""
+        if "bias_step" in self.enabled and float(t_s) >= self.step_at_s:
+            return self.offset + 1e-3 * self.effects["bias_step"]
+        return self.offset
+
+    def params_at(self, t_s: float) -> dict[str, float]:
+        """:meth:`params` of the sensor as it is at time ``t_s`` (s): the offset after a bias step."""
+        return canonical_params(self.matrix, self.offset_at(t_s))
 
     def model_params(self) -> dict[str, float]:
         """Enabled effect coefficients in ``selfcal.models`` names and units."""
         out = {}
         for name in self.enabled:
+            if name in EVENT_EFFECTS:  # not a term of a continuous model: see offset_at, step_at_s
+                continue
             factor, names = EFFECT_MODEL_PARAMS[name]
             for k, v in zip(names, self.effects[name]):
                 out[k] = float(v) * factor
@@ -170,6 +188,7 @@ class SensorTruth:
             "noise_sd_g": self.noise_sd_g.tolist(),
             "lsb_g": self.lsb_g,
             "range_g": self.range_g,
+            "step_at_s": self.step_at_s if np.isfinite(self.step_at_s) else None,
         }
 
     @classmethod
@@ -188,6 +207,7 @@ class SensorTruth:
             noise_sd_g=np.asarray(d.get("noise_sd_g", [0, 0, 0]), float),
             lsb_g=float(d.get("lsb_g", 0.0)),
             range_g=float(d.get("range_g", np.inf)),
+            step_at_s=float(np.inf if d.get("step_at_s") is None else d["step_at_s"]),
         )
 
 
@@ -239,6 +259,7 @@ def draw_sensor_truth(config: SimConfig, rng: np.random.Generator) -> SensorTrut
         noise_sd_g=1e-3 * np.asarray(sc.noise_sd_mg, float),
         lsb_g=1e-3 * sc.lsb_mg,
         range_g=sc.range_g,
+        step_at_s=config.effects.bias_step.at_day * SECONDS_PER_DAY if "bias_step" in enabled else np.inf,
     )
 
 
@@ -289,13 +310,15 @@ def sensor_mean(truth: SensorTruth, a_true_g: np.ndarray, temp_c: np.ndarray, t_
 
 
 def _additive(truth: SensorTruth, d_temp: np.ndarray, t_s: np.ndarray) -> np.ndarray | float:
-    """The offset effects (temperature bias, time drift), raw unit: (n, 3), or 0.0."""
+    """The offset effects (temperature bias, time drift, bias step), raw unit: (n, 3), or 0.0."""
     eff, on = truth.effects, truth.enabled
     out: np.ndarray | float = 0.0
     if "temperature_bias" in on:
         out = out + 1e-3 * d_temp[:, None] * eff["temperature_bias"]
     if "time_drift_bias" in on:
         out = out + 1e-3 * (np.asarray(t_s, float)[:, None] / SECONDS_PER_DAY) * eff["time_drift_bias"]
+    if "bias_step" in on:
+        out = out + 1e-3 * (np.asarray(t_s, float)[:, None] >= truth.step_at_s) * eff["bias_step"]
     return out
 
 
