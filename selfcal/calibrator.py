@@ -392,29 +392,36 @@ class OnlineCalibrator:
 
     def _pose_data(self, mask: np.ndarray, t_now: float) -> PoseData:
         """The store's cells ``mask`` as poses to fit: aged (process noise), and, once a bias
-        step was found, the cells with data from before it down-weighted: their sd grows by
-        ``[selection] step_downweight`` times the sizes of the steps since (their offset is
-        not today's)."""
+        step was found, the cells from before it brought to today's offset.
+
+        A cell whose windows all came before a step has the step's size added to its mean
+        (raw unit: the step is a jump of the offset): it keeps telling the scale and the
+        axes. The last step's size is refitted with the cells at every fit
+        (:meth:`_fit_store`); before an earlier step, a cell's sd also grows by ``[selection]
+        step_downweight`` times that step's sd. A cell with windows from both sides
+        (coarsened before the step was found) is neither: its sd grows by
+        ``step_downweight`` times the step's size."""
         data = self.store.pose_data(mask, t_now, self._age_var())
         steps = self.selection.get("steps") or []
         if not steps:
             return data
-        # a cell is off by every step since its first window (their sizes add up when they
-        # share a sign). Its sd grows by step_downweight x that offset: with the offset
-        # alone (1 sd each), a month of old cells still outweighed the new ones and
-        # selection took the step for a drift
-        t_first = self.store.t_first[mask]
-        size = np.zeros(len(t_first))
+        t_first, t_last = self.store.t_first[mask], self.store.t_last[mask]
+        shift = np.zeros((len(t_first), 3))
         var = np.zeros(len(t_first))
-        for st in steps:
-            later = t_first < float(st["t_step_s"])
-            size += later * float(np.linalg.norm(st["size_mg"])) * 1e-3
-            var += later * float(np.sum(np.square(st["sd_mg"]))) * 1e-6
-        if not np.any(size > 0):
-            return data
+        for i, st in enumerate(steps):
+            tau = float(st["t_step_s"])
+            size = np.asarray(st["size_mg"], float) * 1e-3
+            sd2 = float(np.sum(np.square(st["sd_mg"]))) * 1e-6
+            before = t_last < tau
+            mixed = (t_first < tau) & ~before
+            shift += before[:, None] * size
+            # the last step's size is refitted with the cells (_fit_store); an earlier one's is fixed
+            var += (i < len(steps) - 1) * before * sd2 + mixed * (float(size @ size) + sd2)
+        if not np.any(var > 0):
+            return PoseData(data.mean + shift, data.sd, data.count, data.t_s, data.temp_c)
         k = self.sel_cfg.step_downweight
-        sd = np.sqrt(data.sd**2 + (k**2 * (size**2 + var))[:, None])
-        return PoseData(data.mean, sd, data.count, data.t_s, data.temp_c)
+        sd = np.sqrt(data.sd**2 + (k**2 * var)[:, None])
+        return PoseData(data.mean + shift, sd, data.count, data.t_s, data.temp_c)
 
     def _fit_store(self, data: PoseData, usable: np.ndarray, prior: Prior, theta0) -> tuple:
         """The robust MAP fit of the cells, with the noise the data show; returns
@@ -423,7 +430,7 @@ class OnlineCalibrator:
         floor = s.cell_floor_g
         cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor})
         clusters = self.store.clusters()[usable]
-        fit = fit_poses(self.model, data, prior=prior, theta0_u=theta0, cfg=cfg, robust=True, clusters=clusters)
+        fit, data = self._fit_with_step(data, usable, prior, theta0, cfg, clusters)
         # the noise the data show: the shared floor as the residuals measure it (between
         # cell_floor_min_g and cell_floor_max_g), the cells' noise scaled (never below the model)
         bounds = (((s.cell_floor_min_g / floor) ** 2, (s.cell_floor_max_g / floor) ** 2), (1.0, 10.0))
@@ -433,9 +440,51 @@ class OnlineCalibrator:
             cfg = self.fit_cfg.model_copy(update={"sigma_floor_g": floor * np.sqrt(c_floor)})
             data = PoseData(data.mean, None if data.sd is None else data.sd * np.sqrt(c_noise),
                             data.count, data.t_s, data.temp_c)
-            fit = fit_poses(self.model, data, prior=prior, theta0_u=fit.theta_u, cfg=cfg, robust=True,
-                            clusters=clusters)
+            fit, data = self._fit_with_step(data, usable, prior, fit.theta_u, cfg, clusters)
         return fit, data, cfg, c_noise
+
+    def _fit_with_step(self, data: PoseData, usable: np.ndarray, prior: Prior, theta0, cfg: FitConfig,
+                       clusters: np.ndarray) -> tuple[FitResult, PoseData]:
+        """The robust fit of the current model; after a bias step, jointly with its size.
+
+        ``data`` comes from :meth:`_pose_data` (the cells from before the last step shifted
+        by its recorded size). With a step, the model plus ``bias_step`` at its time is fitted
+        to the cells as they were; the cells from before it are shifted by that fit's size
+        instead, and the current model fitted to them has exactly the joint fit's residuals.
+        Its covariance is the joint fit's, mapped to today's offset (offset + step), so the
+        step's uncertainty is in the published one. Returns ``(fit, data)``."""
+        steps = self.selection.get("steps") or []
+        if not steps or not self.model.takes("bias_step"):
+            return fit_poses(self.model, data, prior=prior, theta0_u=theta0, cfg=cfg, robust=True,
+                             clusters=clusters), data
+        tau = float(steps[-1]["t_step_s"])
+        recorded = np.asarray(steps[-1]["size_mg"], float) * 1e-3
+        before = (self.store.t_last[usable] < tau)[:, None]
+        as_was = PoseData(data.mean - before * recorded, data.sd, data.count, data.t_s, data.temp_c)
+        large = ErrorModel(f"{self.model.name}+bias_step", self.model.temp_ref_c, self.model.t_ref_s, tau)
+        sl = large.index("bias_step")
+        start = large.extend_theta(np.asarray(theta0, float), self.model)
+        start[sl] = recorded
+        joint = fit_poses(large, as_was, prior=self._prior_of(large), theta0_u=start, cfg=cfg, robust=True,
+                          clusters=clusters)
+        size = joint.theta_u[sl] if joint.success else recorded
+        data = PoseData(as_was.mean + before * size, data.sd, data.count, data.t_s, data.temp_c)
+        offset = self.model.index("b")
+        if joint.success:  # today's offset: the offset before the step plus the step
+            small = joint.theta_u[: self.model.n_params].copy()
+            small[offset] += size
+        else:
+            small = theta0
+        fit = fit_poses(self.model, data, prior=prior, theta0_u=small, cfg=cfg, robust=True, clusters=clusters)
+        if joint.success:
+            a = np.zeros((self.model.n_params, large.n_params))
+            a[:, : self.model.n_params] = np.eye(self.model.n_params)
+            a[np.arange(offset.start, offset.stop), np.arange(sl.start, sl.stop)] = 1.0
+            fit.cov_u = a @ joint.cov_u @ a.T
+            fit.cov = fit.normalizer.cov_to_raw(self.model, fit.cov_u)
+            fit.std = np.sqrt(np.maximum(np.diag(fit.cov), 0.0))
+            fit.extra["bias_step_size_mg"] = (size * 1e3).tolist()
+        return fit, data
 
     # ------------------------------------------------------------------ model selection
     def _selection_due(self, t_now: float, n_cells: int) -> bool:
@@ -551,16 +600,21 @@ class OnlineCalibrator:
         return self._switch(ErrorModel(best.large, self.model.temp_ref_c, self._candidate(best.effect).t_ref_s),
                             best, "added", t_now, results)
 
-    def _reestimate_step(self, t_now: float) -> None:
+    def _reestimate_step(self, t_now: float, force: bool = False) -> None:
         """The size of the last step found, refitted on the cells since the step before it at
         their own weights (a step found soon after it happened is known from few cells; the
-        down-weighting of the cells before it follows what the data say now)."""
+        down-weighting of the cells before it follows what the data say now). Cells with
+        windows from both sides of the step are left out, and a refit less precise than the
+        size recorded is not taken (the store drops its oldest cells when it is full) unless
+        ``force`` (the step just found: its first size came from every cell)."""
         steps = self.selection.get("steps") or []
         if not steps or not self.model.takes("bias_step"):
             return
         last = steps[-1]
         since = float(steps[-2]["t_step_s"]) if len(steps) > 1 else -np.inf
-        usable = self._usable() & (self.store.t_first >= since)
+        # cells with windows from both sides of the step (coarsened before it was found) are
+        # neither the old offset nor the new: they would pull the size towards zero
+        usable = self._usable() & (self.store.t_first >= since) & ~self.store.straddles(float(last["t_step_s"]))
         if usable.sum() < self.sel_cfg.min_cells:
             return
         large = ErrorModel(f"{self.model.name}+bias_step", self.model.temp_ref_c, self.model.t_ref_s,
@@ -573,6 +627,8 @@ class OnlineCalibrator:
         if not fit.success:
             return
         sl = large.index("bias_step")
+        if not force and np.sum(np.diag(fit.cov_u)[sl]) > np.sum((np.asarray(last["sd_mg"], float) * 1e-3) ** 2):
+            return  # less precise than the size recorded (the cells from before the step were coarsened away)
         last["size_mg"] = [round(float(x), 4) for x in fit.theta_u[sl] * 1e3]
         last["sd_mg"] = [round(float(x), 4) for x in np.sqrt(np.diag(fit.cov_u)[sl]) * 1e3]
         last["reestimated_t_s"] = float(t_now)
@@ -620,12 +676,16 @@ class OnlineCalibrator:
                   "heldout_z": rounded(comp.heldout_z, 3), "n_heldout_cells": comp.n_heldout, "wald_chi2": round(comp.wald_chi2, 3)}
         before = list(self.selection.get("steps") or [])
         self.selection["steps"] = before + [dict(record)]  # re-estimated later; the version keeps this
+        # the test's fit had every cell, those with windows from both sides too: the size the
+        # history is corrected by comes from the others
+        self._reestimate_step(t_now, force=True)
         fit, cfg, c_noise, n_cells, why = self._refit_for_change(t_now, np.asarray(self.current["theta_u"], float))
         if why:
             self.selection["steps"] = before  # the history stays as it was: the refit did not fit
             self._log_check(t_now, results, f"bias step at {tau / 3600:.1f} h: not taken ({why})")
             return None
         self._log_check(t_now, results, f"bias step at {tau / 3600:.1f} h")
+        self.store.add_barrier(tau)
         message = (f"bias step of ({', '.join(f'{x:.2f}' for x in record['size_mg'])}) mg at {tau / 3600:.1f} h: "
                    f"the cells from before it are down-weighted (held-out RMS {record['heldout_rms_mg_before']} -> "
                    f"{record['heldout_rms_mg_after']} mg on {comp.n_heldout} cells with the step, z "

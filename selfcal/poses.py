@@ -143,6 +143,9 @@ class PoseStore:
     n_merged: int = 0
     n_dropped: int = 0
     t_origin: float | None = None  # time of the first window: blocks are counted from it
+    # times (s) no coarsening merges across: the bias steps found (a cell that mixes windows
+    # from both sides of a step has a mean that is neither the old offset nor the new)
+    barriers_s: list[float] = field(default_factory=list)
     _index: dict = field(default_factory=dict, repr=False)
     # the per-cell derived values of one ``stats`` array, computed once per refit instead of
     # once per use (eigh of every cell's 3x3 scatter): (the array itself, its in-place edit
@@ -401,6 +404,8 @@ class PoseStore:
                 return
             t_mid = np.median(self.t_last)
             old = (self.t_last <= t_mid) & (self._level(self.key) < 15)
+            if self.barriers_s:
+                old &= ~self._doubling_straddles(self.key)
             if not old.any():
                 break
             key = self.key.copy()
@@ -421,6 +426,28 @@ class PoseStore:
             self.key, self.stats = self.key[keep], self.stats[keep]
             self.t_first, self.t_last = self.t_first[keep], self.t_last[keep]
             self._reindex()
+
+    def _doubling_straddles(self, key: np.ndarray) -> np.ndarray:
+        """(m,) bool: the doubled block of each cell would hold a barrier strictly inside it."""
+        lvl = self._level(key)
+        block = (key >> 5) >> (10 + 24)
+        start = (block >> (lvl + 1)) << (lvl + 1)
+        origin = self.t_origin if self.t_origin is not None else 0.0
+        t0 = origin + (start - (1 << 20)).astype(float) * self.config.block_s
+        t1 = t0 + np.ldexp(self.config.block_s, lvl + 1)
+        out = np.zeros(len(key), dtype=bool)
+        for b in self.barriers_s:
+            out |= (t0 < b) & (b < t1)
+        return out
+
+    def add_barrier(self, t_s: float) -> None:
+        """From now on no coarsening merges windows from before ``t_s`` (s) with windows after it."""
+        if t_s not in self.barriers_s:
+            self.barriers_s = sorted(self.barriers_s + [float(t_s)])
+
+    def straddles(self, t_s: float) -> np.ndarray:
+        """(m,) bool: cells holding windows from both sides of ``t_s`` (s)."""
+        return (self.t_first < t_s) & (self.t_last >= t_s)
 
     def _merge_keys(self, key: np.ndarray) -> None:
         ukeys, inv = np.unique(key, return_inverse=True)
@@ -533,6 +560,7 @@ class PoseStore:
             "n_merged": self.n_merged,
             "n_dropped": self.n_dropped,
             "t_origin": self.t_origin,
+            "barriers_s": list(self.barriers_s),
         }
 
     @classmethod
@@ -545,6 +573,7 @@ class PoseStore:
             _dec(d["t_first"]),
             _dec(d["t_last"]),
             int(d["n_seen"]), int(d["n_gated"]), int(d["n_merged"]), int(d["n_dropped"]), d.get("t_origin"),
+            [float(x) for x in d.get("barriers_s", [])],
         )
         obj._reindex()
         return obj

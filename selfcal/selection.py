@@ -64,9 +64,12 @@ class SelectionConfig(BaseModel):
         10.0, gt=0, description="a secondary effect beats a supported primary one when its Wald chi2 is this much larger")
     step: bool = Field(
         True, description="also look for a bias step (a shock, a battery change) when no effect is supported; once one "
-                          "is found, the cells from before it are down-weighted")
+                          "is found, the cells from before it are brought to today's offset by its size, refitted "
+                          "with them")
     step_downweight: float = Field(
-        10.0, ge=1, description="bias step: the sd of a cell from before a step grows by this many times the step's size")
+        10.0, ge=1, description="bias step: the sd of a cell with windows from both sides of a step grows by this many "
+                                "times the step's size, and of a cell from before an earlier step by this many times "
+                                "that step's sd")
     step_times: int = Field(9, ge=1, description="bias step: candidate times scanned (the Wald level is alpha / this)")
     step_min_side: float = Field(
         0.15, gt=0, lt=0.5, description="bias step: the outer candidate times leave this fraction of the cells outside")

@@ -49,3 +49,23 @@ def test_a_shifted_device_clock_changes_no_cell():
     b.add(mean, sd, n, t + 1234.567, temp)  # the insole's clock started earlier
     np.testing.assert_array_equal(np.sort(a.key), np.sort(b.key))
     np.testing.assert_allclose(a.window_counts()[np.argsort(a.key)], b.window_counts()[np.argsort(b.key)])
+
+
+def test_coarsening_never_merges_across_a_barrier_and_the_barrier_is_kept():
+    from selfcal.poses import PoseConfig
+
+    rng = np.random.default_rng(7)
+    mean, sd, n, t, temp = windows(rng, 6000)
+    cfg = PoseConfig(max_cells=200)  # tight: most cells are coarsened
+    tau = t[0] + 48 * cfg.block_s  # a block boundary: no level-0 cell holds both sides
+    for barrier in (False, True):
+        store = PoseStore.empty(cfg)
+        if barrier:
+            store.add_barrier(tau)
+        store.add(mean, sd, n, t, temp)
+        assert store.n_merged > 0 and len(store) <= cfg.max_cells
+        if barrier:
+            assert store.barriers_s == [tau] and PoseStore.from_json(store.to_json()).barriers_s == [tau]
+            assert not store.straddles(tau).any()
+        else:
+            assert store.straddles(tau).sum() > 0  # without it, coarsening mixes both sides
