@@ -64,8 +64,9 @@ def insole_directions_and_temps(rng, n):
     return g, temp
 
 
-def hidden_effect_case(rng, effect=None, magnitude=None, n_poses=120, days=8.0, sample_sd_g=2.5e-3):
-    """One seeded case: returns (poses dict in g, truth dict)."""
+def hidden_effect_case(rng, effect=None, magnitude=None, n_poses=120, days=8.0, sample_sd_g=2.5e-3, noise=True):
+    """One seeded case: returns (poses dict in g, truth dict). ``noise=False``: the same case
+    without its noise (drawn all the same, so every other value is the seed's)."""
     g, temp = insole_directions_and_temps(rng, n_poses)
     t_s = np.sort(rng.uniform(0, days * 86400, n_poses))
     count = rng.integers(40, 400, n_poses).astype(float)  # 2-20 s at 20 Hz
@@ -98,7 +99,7 @@ def hidden_effect_case(rng, effect=None, magnitude=None, n_poses=120, days=8.0, 
     elif effect == "bias_step":
         t_step = rng.uniform(0.25, 0.75) * days * 86400
         raw[:, axis] += 1e-3 * coef * (t_s >= t_step)
-    raw += rng.normal(0, 1, raw.shape) * sample_sd_g / np.sqrt(count)[:, None]
+    raw += noise * rng.normal(0, 1, raw.shape) * sample_sd_g / np.sqrt(count)[:, None]
     poses = {"mean": raw, "sd": np.full((n_poses, 3), sample_sd_g), "count": count, "t_s": t_s, "temp_c": temp}
     truth = {"effect": effect, "axis": "xyz"[axis], "coef": coef, "magnitude": magnitude,
              "sens": sens, "offset": offset.copy()}  # raw = offset + sens @ a (+ the effect)
