@@ -71,8 +71,13 @@ def run_one(job: dict) -> dict:
     rec_path = tmp / f"sim-{effect}-{seed}.csv"
     hist_path = tmp / f"hist-{effect}-{seed}.jsonl"
     t0 = time.perf_counter()
+    config = []
+    if effect == "bias_step":  # the step half way through the recording; the calibrator looks for it
+        cfg_path = tmp / f"step-{effect}-{seed}.toml"
+        cfg_path.write_text(f"[sim.effects.bias_step]\nat_day = {days / 2!r}\n")
+        config = ["--config", str(cfg_path)]
     argv = ["simulate", "--days", str(days), "--kind", "poses", "--effects", effect, "--seed", str(seed),
-            "--out", str(rec_path)]
+            "--out", str(rec_path), *config]
     with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
         ok = cli_main(argv) == 0
     if not ok:
@@ -80,7 +85,8 @@ def run_one(job: dict) -> dict:
     t_sim = time.perf_counter() - t0
     t0 = time.perf_counter()
     with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
-        code = cli_main(["calibrate", str(rec_path), "--model", model_name, "--history", str(hist_path), "--json"])
+        code = cli_main(["calibrate", str(rec_path), "--model", model_name, "--history", str(hist_path), "--json",
+                         *config])
     t_cal = time.perf_counter() - t0
     scorer = TruthScorer(load_truth(truth_path(rec_path)), model_name)
     history = [json.loads(line) for line in hist_path.read_text().splitlines()] if hist_path.exists() else []
@@ -106,6 +112,8 @@ def _simulated_poses(seed: int, days: float, effect: str):
     from selfcal.sim import SimConfig, Simulation
 
     cfg = SimConfig.from_section(section(load_config(None), "sim"))
+    if effect == "bias_step":
+        cfg = cfg.updated(effects={"bias_step": {"at_day": days / 2}})
     cfg = cfg.with_effects([] if effect == "none" else [effect])
     return Simulation(cfg, np.random.default_rng(seed), days=days, seed=seed).poses()
 
@@ -165,7 +173,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0-9", help="seeds, e.g. 0-9 or 1,5,7")
     ap.add_argument("--days", type=float, default=7.0)
     ap.add_argument("--effects", default="none",
-                    help="'none' (model affine9), 'all' (each effect with affine9+effect), or one effect name")
+                    help="'none' (model affine9), 'all' (each effect with affine9+effect), or one effect name; "
+                         "'bias_step' puts the step half way through and keeps affine9 (the calibrator looks for it)")
     ap.add_argument("--workers", type=int, default=min(2, mp.cpu_count()))
     ap.add_argument("--json", metavar="FILE", help="write the full results here")
     ap.add_argument("--markdown", metavar="FILE", help="write the Markdown tables here")
@@ -175,7 +184,8 @@ def main(argv=None) -> int:
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         jobs = [{"seed": s, "days": args.days, "effect": e, "tmp": tmp,
-                 "model": "affine9" if e == "none" else f"affine9+{e}"} for e in effects for s in _seeds(args.seeds)]
+                 "model": "affine9" if e in ("none", "bias_step") else f"affine9+{e}"}
+                for e in effects for s in _seeds(args.seeds)]
         done = 0
         with mp.get_context("spawn").Pool(args.workers) as pool:
             runs = []

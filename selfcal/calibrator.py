@@ -24,8 +24,9 @@ Why it is consistent by construction (docs/internals.md has the measurements)
 * **Status is a promise.** Every version carries ``predicted_sphere_rms_mg``, the
   calibrated-norm RMS error over the whole sphere that its covariance predicts.
   ``calibrated`` means that this is at most ``calibrated_max_sphere_mg`` *and* the
-  data determine every base parameter; ``provisional`` is anything published short of
-  that.
+  data determine every base parameter *and* the cells since the last version agree
+  with the fit (no offset jump at their start: a bias step not yet named);
+  ``provisional`` is anything published short of that.
 * **Publication on significant change only**: a status change, a parameter change
   that is significant against the new covariance (chi² quantile), or a predicted
   sphere error that improved by a factor; never more often than
@@ -93,6 +94,10 @@ class SchedulerConfig(BaseModel):
     calibrated_max_sphere_mg: float = Field(
         2.0, gt=0, description="'calibrated' needs a predicted whole-sphere norm RMS error at most this, mg"
     )
+    recent_check_alpha: float = Field(
+        1e-4, ge=0, lt=1, description="'calibrated' also needs the cells since the last version to agree with the "
+                                      "fit: their offset is tested for a jump at this level (0: no test)")
+    recent_check_min_cells: int = Field(12, ge=1, description="...when at least this many cells are new")
     publish_chi2_quantile: float = Field(
         0.99, gt=0, lt=1, description="a parameter change is significant beyond this chi2 quantile (new covariance)"
     )
@@ -385,6 +390,7 @@ class OnlineCalibrator:
         if not decision.publish:
             return self._refuse(t_now, decision.reason, decision.message, fit, decision)
         cal = self._describe(fit, t_now, n_cells, decision)
+        self._check_recent(cal, fit, data, usable)
         hold = self._hold(fit, cal, t_now, final)
         if hold:
             return self._refuse(t_now, "no_significant_change", hold, fit, decision)
@@ -794,6 +800,38 @@ class OnlineCalibrator:
                 False, "worse_than_current", f"held-out RMS {new:.3f} mg on {where} is worse than the {label}'s {cur:.3f} mg",
                 new, cur)
         return GuardDecision(True, None, f"held-out RMS {new:.3f} mg vs {label} {cur:.3f} mg on {where}", new, cur)
+
+    def _check_recent(self, cal: dict, fit: FitResult, data: PoseData, usable: np.ndarray) -> None:
+        """A ``calibrated`` candidate stays so only if the cells that came since the last
+        version agree with it: the score statistic of an offset jump at the start of those
+        cells (3 dof, at the fit, with the fitted model's columns projected out and the
+        whitened residuals clipped at ``reject_z``) must be below the chi2 quantile of
+        ``recent_check_alpha``. A bias step is seen here within hours, long before a model
+        check can name it (it needs 15 % of the cells after it); until then the device is
+        ``provisional``, with the reason in ``status_reason``."""
+        s = self.sched_cfg
+        if cal["status"] != "calibrated" or self.current is None or s.recent_check_alpha <= 0:
+            return
+        t_prev = float(self.current.get("t_data_s", self.current["t_s"]))
+        recent = self.store.t_first[usable] > t_prev
+        n = int(recent.sum())
+        if n < s.recent_check_min_cells or n == len(recent) or len(fit.residuals_g) != len(recent):
+            return
+        jac = fit.model.residual_jac(fit.theta_u, data.mean, data.temp_c, data.t_s)[1] / fit.sigma_g[:, None]
+        q, _ = np.linalg.qr(jac)
+        c = jac[:, 0:3] * recent[:, None]
+        c = c - q @ (q.T @ c)
+        rw = np.clip(fit.residuals_g / fit.sigma_g, -self.fit_cfg.reject_z, self.fit_cfg.reject_z)
+        z = c.T @ rw
+        try:
+            score = float(z @ np.linalg.solve(c.T @ c, z))
+        except np.linalg.LinAlgError:
+            return
+        if score > float(_chi2_isf(3, s.recent_check_alpha)):
+            cal["status"] = "provisional"
+            cal["status_reason"] = (f"the {n} cells since the last version disagree with the model (offset jump "
+                                    f"chi2 {score:.1f} on 3 > {float(_chi2_isf(3, s.recent_check_alpha)):.1f}): "
+                                    "a bias step?")
 
     def _determined(self, cov_u: np.ndarray) -> np.ndarray:
         """Parameters whose sd is below ``determined_ratio`` of the datasheet's, (p,) bool."""

@@ -194,6 +194,7 @@ def calibration_out(device_id: str, dev: DeviceRecord, ver: VersionRecord | None
         device_id=device_id,
         version=ver.version if ver else None,
         status=ver.status if ver else "uncalibrated",
+        status_reason=calib.get("status_reason"),
         source=ver.source if ver else None,
         model=calib.get("model"),
         params=calib.get("params"),

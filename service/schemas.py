@@ -286,6 +286,9 @@ class CalibrationOut(BaseModel):
     device_id: str
     version: int | None = Field(description="model version served; null before the first")
     status: Status
+    status_reason: str | None = Field(
+        None, description="why a version whose covariance would make it 'calibrated' is 'provisional' (e.g. the "
+        "cells since the last version disagree with it: a bias step not yet named)")
     source: Literal["refit", "factory", "rollback"] | None = None
     model: str | None = None
     params: dict[str, float | None] | None = None

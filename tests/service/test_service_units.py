@@ -265,3 +265,15 @@ def test_protocol_sets_tcp_nodelay_even_on_a_socket_without_proto(parser):
         loop.close()
         for s in (shared, cli, srv):
             s.close()
+
+
+def test_the_served_calibration_says_why_it_is_provisional():
+    from selfcal_service.main import calibration_out
+    from selfcal_service.storage import DeviceRecord, VersionRecord
+
+    dev = DeviceRecord("insole-1", 3, 2, 1200, None, "provisional", None, {}, 4, 0.0)
+    reason = "the 40 cells since the last version disagree with the model (offset jump chi2 88.0 on 3 > 21.1): a bias step?"
+    ver = VersionRecord(4, "provisional", "refit", 0.0, {"model": "affine9", "status_reason": reason}, {})
+    out = calibration_out("insole-1", dev, ver)
+    assert out.status == "provisional" and out.status_reason == reason
+    assert calibration_out("insole-1", dev, VersionRecord(4, "calibrated", "refit", 0.0, {}, {})).status_reason is None
