@@ -410,9 +410,9 @@ def create_app(
             worker.start()
         app.state.store, app.state.worker = st, worker
         metrics.gauge("selfcal_worker_queue_depth", worker.queue_depth)
-        metrics.gauge("selfcal_backlog_batches", st.backlog)
+        metrics.gauge("selfcal_backlog_batches", st.backlog, per_process=False)
         if hasattr(st, "oldest_pending_age_s"):
-            metrics.gauge("selfcal_backlog_oldest_age_seconds", st.oldest_pending_age_s)
+            metrics.gauge("selfcal_backlog_oldest_age_seconds", st.oldest_pending_age_s, per_process=False)
         if isinstance(st, GroupCommitStore):
             metrics.gauge("selfcal_db_write_queue_depth", st.queue_depth)
             metrics.counter_from("selfcal_db_commits_total", lambda: st.commits)

@@ -4,9 +4,11 @@ With several API processes (``selfcal serve --workers N``) a scrape reaches one 
 Each process then also writes its counters and histograms to ``<shared_dir>/<pid>.json``
 about once a second, and :meth:`Metrics.render` adds up every process's file (a dead
 process's last file stays, so counters never go backwards; ``serve`` empties the folder
-when it starts). Gauges are the answering process's own, except those read from the
-shared database (backlog), which are global. A ``selfcal worker`` given the same folder
-(``[service] metrics_dir``) adds its refit counters.
+when it starts). Gauges read from the shared database (backlog) are global. The others
+(queue depths, leases) are per process: each comes with a ``pid`` label, one line per
+live process (a file written in the last ``GAUGE_FRESH_S``; a dead process's gauges go
+away, its counters stay). A ``selfcal worker`` given the same folder (``[service]
+metrics_dir``) adds its refit counters and its gauges.
 """
 
 from __future__ import annotations
@@ -14,9 +16,13 @@ from __future__ import annotations
 import json
 import os
 import threading
+import time
 import uuid
 from pathlib import Path
 from typing import Callable
+
+#: A process's gauges count when its shared file is at most this old (s): it rewrites it every second.
+GAUGE_FRESH_S = 5.0
 
 #: Request-latency histogram buckets (s).
 LATENCY_BUCKETS_S = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5)
@@ -63,6 +69,7 @@ class Metrics:
         self._counters: dict[tuple[str, tuple[tuple[str, str], ...]], float] = {}
         self._hist: dict[tuple[str, tuple[tuple[str, str], ...]], list[float]] = {}
         self._gauges: dict[str, Callable[[], float]] = {}
+        self._local_gauges: dict[str, Callable[[], float]] = {}
         self._counter_fns: dict[str, Callable[[], float]] = {}
         # one file per process life: a later process with the same pid does not overwrite it
         self._file = f"{os.getpid()}-{uuid.uuid4().hex[:8]}.json"
@@ -87,11 +94,22 @@ class Metrics:
                 pass
         return counters
 
+    def _own_gauges(self) -> dict[str, float]:
+        """This process's per-process gauges, read now (nan when a source fails)."""
+        out = {}
+        for name, fn in self._local_gauges.items():
+            try:
+                out[name] = float(fn())
+            except Exception:  # noqa: BLE001 - the scrape still answers
+                out[name] = float("nan")
+        return out
+
     def _snapshot(self) -> dict:
         counters = self._own_counters()
         with self._lock:
             hist = [[k[0], list(k[1]), v] for k, v in self._hist.items()]
-        return {"counters": [[k[0], list(k[1]), v] for k, v in counters.items()], "hist": hist}
+        return {"counters": [[k[0], list(k[1]), v] for k, v in counters.items()], "hist": hist,
+                "pid": os.getpid(), "gauges": self._own_gauges()}
 
     def publish(self) -> None:
         """Write this process's counters and histograms to the shared folder (atomically)."""
@@ -110,21 +128,28 @@ class Metrics:
             except OSError:  # the folder went away (shutdown): nothing to share any more
                 return
 
-    def _merged(self) -> tuple[dict, dict]:
-        """Counters and histograms of this process plus every other process's last file."""
+    def _merged(self) -> tuple[dict, dict, dict]:
+        """Counters and histograms of this process plus every other process's last file, and
+        the per-process gauges ``{(name, pid): value}`` of this process and the live others."""
         counters = self._own_counters()
         with self._lock:
             hist = {k: list(v) for k, v in self._hist.items()}
+        gauges = {(name, str(os.getpid())): v for name, v in self._own_gauges().items()}
         if self.shared_dir is None:
-            return counters, hist
+            return counters, hist, gauges
         own = self._file
+        now = time.time()
         for f in self.shared_dir.glob("*.json"):
             if f.name == own:
                 continue
             try:
+                fresh = now - f.stat().st_mtime <= GAUGE_FRESH_S
                 other = json.loads(f.read_text())
             except (OSError, ValueError):
                 continue  # being replaced right now: its next version counts next time
+            if fresh:
+                for name, value in (other.get("gauges") or {}).items():
+                    gauges[(name, str(other.get("pid", f.name.split("-")[0])))] = value
             for name, labels, value in other["counters"]:
                 key = (name, tuple(tuple(x) for x in labels))
                 counters[key] = counters.get(key, 0.0) + value
@@ -132,7 +157,7 @@ class Metrics:
                 key = (name, tuple(tuple(x) for x in labels))
                 mine = hist.setdefault(key, [0.0] * len(values))
                 hist[key] = [a + b for a, b in zip(mine, values)]
-        return counters, hist
+        return counters, hist, gauges
 
     def inc(self, name: str, value: float = 1.0, **labels: str) -> None:
         key = (name, tuple(sorted(labels.items())))
@@ -142,8 +167,11 @@ class Metrics:
     def get(self, name: str, **labels: str) -> float:
         return self._counters.get((name, tuple(sorted(labels.items()))), 0.0)
 
-    def gauge(self, name: str, fn: Callable[[], float]) -> None:
-        self._gauges[name] = fn
+    def gauge(self, name: str, fn: Callable[[], float], per_process: bool = True) -> None:
+        """A gauge read from ``fn`` at every scrape. ``per_process``: this process's own value
+        (shown with a ``pid`` label beside the other live processes'); False: a global value
+        (read from the shared database), shown once without a label."""
+        (self._local_gauges if per_process else self._gauges)[name] = fn
 
     def observe(self, name: str, value_s: float, **labels: str) -> None:
         key = (name, tuple(sorted(labels.items())))
@@ -160,7 +188,7 @@ class Metrics:
 
     def render(self) -> str:
         lines: list[str] = []
-        counters, hist = self._merged()
+        counters, hist, local = self._merged()
         for name, (kind, help_text) in self.HELP.items():
             lines.append(f"# HELP {name} {help_text}")
             lines.append(f"# TYPE {name} {kind}")
@@ -175,7 +203,9 @@ class Metrics:
                 for labels, value in sorted(rows):
                     lines.append(f"{name}{_labels(labels)} {value:g}")
             elif kind == "gauge":
-                lines.append(f"{name} 0")
+                rows = sorted((pid, v) for (g, pid), v in local.items() if g == name)
+                for pid, value in rows:
+                    lines.append(f"{name}{_labels((('pid', pid),))} {value:g}")
             else:
                 for (hname, labels), h in sorted(hist.items()):
                     if hname != name:

@@ -277,3 +277,29 @@ def test_the_served_calibration_says_why_it_is_provisional():
     out = calibration_out("insole-1", dev, ver)
     assert out.status == "provisional" and out.status_reason == reason
     assert calibration_out("insole-1", dev, VersionRecord(4, "calibrated", "refit", 0.0, {}, {})).status_reason is None
+
+
+def test_per_process_gauges_carry_the_pid_and_a_dead_process_drops_out(tmp_path):
+    import json
+    import os
+    import time
+
+    from selfcal_service.metrics import GAUGE_FRESH_S, Metrics
+
+    m = Metrics(tmp_path)
+    m.gauge("selfcal_worker_queue_depth", lambda: 3)
+    m.gauge("selfcal_backlog_batches", lambda: 7, per_process=False)
+    m.inc("selfcal_ingest_samples_total", 5)
+    other = {"counters": [["selfcal_ingest_samples_total", [], 2.0]], "hist": [], "pid": 4242,
+             "gauges": {"selfcal_worker_queue_depth": 9.0}}
+    live, dead = tmp_path / "4242-aaaa.json", tmp_path / "4343-bbbb.json"
+    live.write_text(json.dumps(other))
+    dead.write_text(json.dumps({**other, "pid": 4343, "gauges": {"selfcal_worker_queue_depth": 99.0}}))
+    old = time.time() - GAUGE_FRESH_S - 5
+    os.utime(dead, (old, old))
+    text = m.render()
+    assert f'selfcal_worker_queue_depth{{pid="{os.getpid()}"}} 3' in text
+    assert 'selfcal_worker_queue_depth{pid="4242"} 9' in text
+    assert 'pid="4343"' not in text  # a dead process's gauges go away ...
+    assert "selfcal_ingest_samples_total 9" in text  # ... its counters stay (5 + 2 + 2)
+    assert "selfcal_backlog_batches 7" in text and 'selfcal_backlog_batches{' not in text
