@@ -205,12 +205,21 @@ def efficient_reference(model_name: str, truth: dict, poses, t_end_s: float) -> 
     (datasheet prior) weighted by that true noise, started at the truth; both at ``t_end_s``.
     The oracle knows what no calibrator can (each window's true noise), so its error is the
     floor an online estimator is measured against: even it exceeds ``2 x crlb_mg`` on a few
-    per cent of weeks (README).
+    per cent of weeks (README). When the truth has a bias step, both also know its time:
+    they use ``model_name`` plus ``bias_step`` at that time (the offset before it and the
+    jump), so the reference is the sensor as it is at ``t_end_s``, not one offset fitted
+    across the step.
     """
     from selfcal.fit import NoiseModel, PoseData, fit_poses
 
     scorer = TruthScorer(truth, model_name)
     model, truth_u = scorer.model, scorer.truth_u
+    step_at = scorer.sensor.step_at_s
+    if np.isfinite(step_at) and model.takes("bias_step"):
+        model = ErrorModel(f"{model_name}+bias_step", model.temp_ref_c, model.t_ref_s, float(step_at))
+        known = {**truth["params"], **truth["effect_params"],
+                 **dict(zip(("sbx", "sby", "sbz"), 1e-3 * scorer.sensor.effects["bias_step"]))}
+        truth_u = model.from_dict({k: v for k, v in known.items() if k in set(model.param_names)})
     t_s = np.asarray(poses.t_s, float) + 0.5 * np.asarray(poses.duration_s, float)
     data = PoseData(poses.mean_g, np.sqrt(poses.noise_var_g2), np.ones(len(t_s)), t_s, poses.temp_c)
     cfg = FitConfig(sigma_floor_g=0.0)
