@@ -72,7 +72,7 @@ from selfcal.selection import (
     wald_significant,
 )
 from selfcal.selection import applicable as selection_applicable
-from selfcal.steps import refine_time, scan_step, step_times, whitened_basis
+from selfcal.steps import jump_score, refine_time, scan_step, step_times, whitened_basis
 
 SECONDS_PER_DAY = 86400.0
 STATE_FORMAT_VERSION = 2
@@ -467,7 +467,7 @@ class OnlineCalibrator:
         recorded = np.asarray(steps[-1]["size_mg"], float) * 1e-3
         before = (self.store.t_last[usable] < tau)[:, None]
         as_was = PoseData(data.mean - before * recorded, data.sd, data.count, data.t_s, data.temp_c)
-        large = ErrorModel(f"{self.model.name}+bias_step", self.model.temp_ref_c, self.model.t_ref_s, tau)
+        large = self._step_model(tau)
         sl = large.index("bias_step")
         start = large.extend_theta(np.asarray(theta0, float), self.model)
         start[sl] = recorded
@@ -606,6 +606,10 @@ class OnlineCalibrator:
         return self._switch(ErrorModel(best.large, self.model.temp_ref_c, self._candidate(best.effect).t_ref_s),
                             best, "added", t_now, results)
 
+    def _step_model(self, tau: float) -> ErrorModel:
+        """This model plus ``bias_step`` at ``tau`` (s)."""
+        return ErrorModel(f"{self.model.name}+bias_step", self.model.temp_ref_c, self.model.t_ref_s, float(tau))
+
     def _reestimate_step(self, t_now: float, force: bool = False) -> None:
         """The size of the last step found, refitted on the cells since the step before it at
         their own weights (a step found soon after it happened is known from few cells; the
@@ -623,8 +627,7 @@ class OnlineCalibrator:
         usable = self._usable() & (self.store.t_first >= since) & ~self.store.straddles(float(last["t_step_s"]))
         if usable.sum() < self.sel_cfg.min_cells:
             return
-        large = ErrorModel(f"{self.model.name}+bias_step", self.model.temp_ref_c, self.model.t_ref_s,
-                           float(last["t_step_s"]))
+        large = self._step_model(float(last["t_step_s"]))
         data = self.store.pose_data(usable, t_now, self._age_var())
         theta0 = large.extend_theta(np.asarray(self.current["theta_u"], float), self.model)
         theta0[large.index("bias_step")] = np.asarray(last["size_mg"], float) * 1e-3
@@ -658,7 +661,7 @@ class OnlineCalibrator:
             return None
         sigma, q = whitened_basis(small, data.mean, data.temp_c, data.t_s)
         tau, _ = scan_step(small, data.mean, data.temp_c, data.t_s, sigma, q, times)
-        large = ErrorModel(f"{self.model.name}+bias_step", self.model.temp_ref_c, self.model.t_ref_s, tau)
+        large = self._step_model(tau)
         level = c.model_copy(update={"alpha": c.alpha / len(times)})
         comp = compare(self.model, large, data, folds_all[mask], prior_small=self.prior(),
                        prior_large=self._prior_of(large), theta_small=theta, fit_cfg=cfg, clip_g=clip,
@@ -669,8 +672,8 @@ class OnlineCalibrator:
         return refine_time(small, data.mean, data.temp_c, data.t_s, sigma, q, times, tau), comp
 
     def _step_found(self, tau: float, comp: Comparison, t_now: float, results: list) -> dict | None:
-        """Record a bias step at ``tau`` (s), refit the current model with the cells from
-        before it down-weighted, and publish that as a version; None if it does not fit."""
+        """Record a bias step at ``tau`` (s), refit the current model jointly with the step's
+        size (:meth:`_fit_with_step`), and publish that as a version; None if it does not fit."""
         fit_l = comp.large_fit
         sl = fit_l.model.index("bias_step")
         size, cov = fit_l.theta_u[sl], fit_l.cov_u[sl, sl]
@@ -693,13 +696,13 @@ class OnlineCalibrator:
         self._log_check(t_now, results, f"bias step at {tau / 3600:.1f} h")
         self.store.add_barrier(tau)
         message = (f"bias step of ({', '.join(f'{x:.2f}' for x in record['size_mg'])}) mg at {tau / 3600:.1f} h: "
-                   f"the cells from before it are down-weighted (held-out RMS {record['heldout_rms_mg_before']} -> "
+                   f"the cells from before it are fitted with the step (held-out RMS {record['heldout_rms_mg_before']} -> "
                    f"{record['heldout_rms_mg_after']} mg on {comp.n_heldout} cells with the step, z "
                    f"{comp.heldout_z:.1f}; step chi2 {comp.wald_chi2:.1f} on 3)")
         return self._publish_change(fit, cfg, c_noise, t_now, n_cells, message, record, "bias_step", "bias_step")
 
     def _refit_for_change(self, t_now: float, theta0: np.ndarray) -> tuple:
-        """Refit the store under the current model (and its step down-weighting) for a change a
+        """Refit the store under the current model (jointly with the last bias step) for a change a
         check decided; ``(fit, fit config, cell noise factor, cells, why not)``, ``why not``
         None when the fit converged and is plausible."""
         try:
@@ -819,12 +822,9 @@ class OnlineCalibrator:
             return
         jac = fit.model.residual_jac(fit.theta_u, data.mean, data.temp_c, data.t_s)[1] / fit.sigma_g[:, None]
         q, _ = np.linalg.qr(jac)
-        c = jac[:, 0:3] * recent[:, None]
-        c = c - q @ (q.T @ c)
         rw = np.clip(fit.residuals_g / fit.sigma_g, -self.fit_cfg.reject_z, self.fit_cfg.reject_z)
-        z = c.T @ rw
         try:
-            score = float(z @ np.linalg.solve(c.T @ c, z))
+            score = jump_score(jac[:, 0:3], q, rw, recent)
         except np.linalg.LinAlgError:
             return
         if score > float(_chi2_isf(3, s.recent_check_alpha)):

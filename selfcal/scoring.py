@@ -99,13 +99,18 @@ class TruthScorer:
         self.model, self.truth_u = self._of(model_name)
         self.dirs = sphere_directions(n_dirs)
 
+    @staticmethod
+    def _truth_in(model: ErrorModel, known: dict[str, float]) -> np.ndarray:
+        """The truth ``known`` (parameter name -> value) as ``model``'s vector (its names only)."""
+        names = set(model.param_names)
+        return model.from_dict({k: v for k, v in known.items() if k in names})
+
     def _of(self, model_name: str) -> tuple[ErrorModel, np.ndarray]:
         """The model of that name (the truth's reference temperature and time) and the truth in it."""
         if model_name not in self._models:
             model = ErrorModel(model_name, self.truth["temp_ref_c"], float(self.truth.get("time_origin_s", 0.0)))
-            names = set(model.param_names)
             known = {**self.truth["params"], **self.truth["effect_params"]}
-            self._models[model_name] = (model, model.from_dict({k: v for k, v in known.items() if k in names}))
+            self._models[model_name] = (model, self._truth_in(model, known))
         return self._models[model_name]
 
     def sphere_rms_mg(self, theta_u: np.ndarray, t_s: float, model: ErrorModel | None = None) -> float:
@@ -124,8 +129,7 @@ class TruthScorer:
         model, truth_u = self._of(calibration.get("model", self.model.name))
         t_s = float(calibration["t_s"])
         if t_s >= self.sensor.step_at_s:  # after a bias step the truth is the sensor as it now is
-            known = {**self.sensor.params_at(t_s), **self.truth["effect_params"]}
-            truth_u = model.from_dict({k: v for k, v in known.items() if k in set(model.param_names)})
+            truth_u = self._truth_in(model, {**self.sensor.params_at(t_s), **self.truth["effect_params"]})
         theta = model.from_dict(calibration["params"])
         std = np.array([calibration["std"][n] for n in model.param_names])
         row = version_row(calibration)
@@ -216,10 +220,12 @@ def efficient_reference(model_name: str, truth: dict, poses, t_end_s: float) -> 
     model, truth_u = scorer.model, scorer.truth_u
     step_at = scorer.sensor.step_at_s
     if np.isfinite(step_at) and model.takes("bias_step"):
+        from selfcal.sim.sensor import EFFECT_MODEL_PARAMS
+
         model = ErrorModel(f"{model_name}+bias_step", model.temp_ref_c, model.t_ref_s, float(step_at))
-        known = {**truth["params"], **truth["effect_params"],
-                 **dict(zip(("sbx", "sby", "sbz"), 1e-3 * scorer.sensor.effects["bias_step"]))}
-        truth_u = model.from_dict({k: v for k, v in known.items() if k in set(model.param_names)})
+        factor, names = EFFECT_MODEL_PARAMS["bias_step"]
+        step = dict(zip(names, factor * scorer.sensor.effects["bias_step"]))
+        truth_u = scorer._truth_in(model, {**truth["params"], **truth["effect_params"], **step})
     t_s = np.asarray(poses.t_s, float) + 0.5 * np.asarray(poses.duration_s, float)
     data = PoseData(poses.mean_g, np.sqrt(poses.noise_var_g2), np.ones(len(t_s)), t_s, poses.temp_c)
     cfg = FitConfig(sigma_floor_g=0.0)

@@ -55,14 +55,23 @@ def scan_step(base_fit, u: np.ndarray, temp_c: np.ndarray | None, t_s: np.ndarra
     rw = base_fit.residuals_g / sigma
     score = np.zeros(len(times))
     for k, tau in enumerate(times.tolist()):  # a handful of candidate times: one (n, 3) product each
-        c = jb * (t_s >= tau)[:, None]
-        c = c - q @ (q.T @ c)
-        z = c.T @ rw
         try:
-            score[k] = float(z @ np.linalg.solve(c.T @ c, z))
+            score[k] = jump_score(jb, q, rw, t_s >= tau)
         except np.linalg.LinAlgError:
             score[k] = 0.0
     return float(times[int(np.argmax(score))]), score
+
+
+def jump_score(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, after: np.ndarray) -> float:
+    """The score statistic ``z' (C'C)^-1 z`` (linearised chi2 drop, 3 dof) of an offset jump
+    on the poses ``after`` (n,) bool: ``C`` is the whitened offset Jacobian ``jw_offset``
+    (n, 3) on those poses with the fitted model's columns ``q`` (n, k, orthonormal)
+    projected out, ``z = C' rw`` with ``rw`` (n,) the whitened residuals. Raises
+    LinAlgError when ``C'C`` is singular."""
+    c = jw_offset * after[:, None]
+    c = c - q @ (q.T @ c)
+    z = c.T @ rw
+    return float(z @ np.linalg.solve(c.T @ c, z))
 
 
 def refine_time(base_fit, u: np.ndarray, temp_c: np.ndarray | None, t_s: np.ndarray, sigma: np.ndarray,
