@@ -57,11 +57,17 @@ def _fmt(x, nd=3):
     return "-" if x is None else f"{x:.{nd}g}"
 
 
+#: the noise models and the test under correlated noise compared: (label, [diagnose] settings)
+MODES = (("independent", {"noise_model": "independent"}),
+         ("bouts", {"noise_model": "bouts", "correlated_test": "design_effect"}),
+         ("bouts, GLS", {"noise_model": "bouts", "correlated_test": "gls"}))
+
+
 def record_section(n_sim: int) -> None:
-    print("## 1. GGIR 84-h wrist record, both noise models\n")
-    for mode in ("independent", "bouts"):
+    print("## 1. GGIR 84-h wrist record, both noise models (and the GLS test under the bout noise)\n")
+    for mode, settings in MODES:
         t0 = time.perf_counter()
-        rep, _ = diagnose_recording(RECORD, {"diagnose": {"noise_model": mode, "n_sim": n_sim}})
+        rep, _ = diagnose_recording(RECORD, {"diagnose": {**settings, "n_sim": n_sim}})
         el = time.perf_counter() - t0
         d = rep["discrepancy"]
         print(f"noise_model={mode} ({el:.1f} s, {n_sim} replicates): cause {rep['cause']}")
@@ -84,7 +90,7 @@ def record_section(n_sim: int) -> None:
             tb = ""
             if est and e["name"] == "temperature_bias":
                 tb = f", z estimate {est['value']['z']:.3f} ± {est['std']['z']:.3f} {est['unit']}"
-            print(f"  {e['name']:<19} F {_fmt(e.get('f_stat'), 4):>8}  design effect {_fmt(e.get('design_effect'), 3):>5}  "
+            print(f"  {e['name']:<19} F {_fmt(e.get('f_stat'), 4):>8}  p {_fmt(e.get('p_value'), 2):>8}  design effect {_fmt(e.get('design_effect'), 3):>5}  "
                   f"gain (time, pose) {_fmt(e.get('gain_time'), 2)}, {_fmt(e.get('gain_pose'), 2)}  "
                   f"{'SELECTED' if e['selected'] else ('supported' if e.get('supported') else '-')}{tb}")
         print()
@@ -170,12 +176,12 @@ def calls_section(seeds: int) -> None:
     print("| effect | noise model | named | wrong | none | rate (95 % interval) |")
     print("|---|---|---|---|---|---|")
     for tb in (0.0, 0.3):
-        calls = {"independent": [], "bouts": []}
+        calls = {mode: [] for mode, _ in MODES}
         for s in range(seeds):
             poses, _ = bout_case(np.random.default_rng(2000 + s), sigma_bout_mg=2.0, sigma_ar_mg=1.0, tau_s=300.0,
                                  tb_mg_per_c=tb)
-            for mode in calls:
-                calls[mode].append(_diag(poses, n_sim=2, noise_model=mode, noise_boot=0)["cause"])
+            for mode, settings in MODES:
+                calls[mode].append(_diag(poses, n_sim=2, noise_boot=0, **settings)["cause"])
         for mode, c in calls.items():
             named = sum(x == "temperature_bias" for x in c) if tb else 0
             wrong = sum(x is not None and (not tb or x != "temperature_bias") for x in c)

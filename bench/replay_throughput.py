@@ -7,6 +7,13 @@ In one run, for each level (``poses``: the simulator's still windows; ``samples`
 throughput, the throughput per core, and the final accuracy (identical across engines
 for the same seeds). Progress goes to stderr.
 
+Then, unless ``--no-stages``, where a samples-level device-day goes (one device, one
+process, the same seed): the simulator alone (the 20 Hz stream of every channel), the
+detector alone on that stream, and the random draws the stream cannot do without (three
+accelerometer axes, four pressure channels and the temperature: 8 standard normals a
+sample), each as device-days/s; and, for the poses level, the simulator's schedule and
+still windows alone. A stage slower than the goal bounds the whole replay below it.
+
     python bench/replay_throughput.py                        # 4 devices x 10 days, both levels
     python bench/replay_throughput.py --days 365 --devices 8 --levels poses --engines processes:2
 """
@@ -33,6 +40,8 @@ def main(argv=None) -> int:
     ap.add_argument("--engines", default="processes:1,processes:2,dask:2",
                     help="engine:workers, comma-separated (engines: processes, dask, ray)")
     ap.add_argument("--seed", type=int, default=100)
+    ap.add_argument("--no-stages", action="store_true", help="skip the per-stage figures")
+    ap.add_argument("--stage-days", type=float, default=2.0, help="days of the one device timed stage by stage")
     args = ap.parse_args(argv)
     cfg = load_config()
     print(f"replay throughput: {args.devices} devices x {args.days:g} days, refit every "
@@ -57,7 +66,44 @@ def main(argv=None) -> int:
                 reference[level] = final
             print(f"| {level} | {engine} | {workers} | {wall:.1f} | {rate:.2f} | {rate / min(workers, os.cpu_count() or 1):.2f} "
                   f"| {np.median(final):.3f}, {final.max():.3f}{same} |", flush=True)
+    if not args.no_stages:
+        print_stages(cfg, args.stage_days, args.seed)
     return 0
+
+
+def print_stages(cfg: dict, days: float, seed: int) -> None:
+    """Device-days/s of each stage of one device's replay, alone, on this process."""
+    from selfcal.config import section
+    from selfcal.detect import StaticDetector
+    from selfcal.sim.config import SimConfig
+    from selfcal.sim.simulator import Simulation
+
+    sim_cfg = SimConfig.from_section(section(cfg, "sim"))
+    rows = []
+    t0 = time.perf_counter()
+    sim = Simulation(sim_cfg, np.random.default_rng(seed), days=days, seed=seed)
+    sim.poses()
+    rows.append(("poses level: the simulator's schedule and still windows", time.perf_counter() - t0, None))
+    t0 = time.perf_counter()
+    chunks = list(sim.iter_samples(chunk_s=3600))
+    n = sum(len(c.t_s) for c in chunks)
+    rows.append(("samples level: the simulator's 20 Hz stream (schedule excluded)", time.perf_counter() - t0, n))
+    det = StaticDetector(section(cfg, "detector"))
+    t0 = time.perf_counter()
+    found = sum(len(det.feed(c.t_s, c.acc_g, temp_c=c.temp_c, pressure_kpa=c.pressure_kpa).t_start_s)
+                for c in chunks)
+    rows.append((f"samples level: the detector on that stream, 1 h chunks ({found} windows)", time.perf_counter() - t0, n))
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    for c in chunks:
+        rng.standard_normal((len(c.t_s), 8))
+    rows.append(("samples level: 8 standard normals a sample, nothing else", time.perf_counter() - t0, n))
+    print(f"\nwhere the time goes, one device x {days:g} days (seed {seed}), one process:\n")
+    print("| stage | s | device-days/s | M samples/s |")
+    print("|---|---:|---:|---:|")
+    for name, wall, samples in rows:
+        rate = f"{samples / wall / 1e6:.2f}" if samples else "—"
+        print(f"| {name} | {wall:.2f} | {days / wall:.1f} | {rate} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -46,6 +46,8 @@ MIN_PAIRS = 20
 MIN_MULTI_BOUTS = 3
 #: level of the test of independence within bouts; the correlated part is kept only when it rejects
 INDEPENDENCE_ALPHA = 1e-3
+#: the GLS whitener factors bouts of at most this many windows at once (longer ones in pieces)
+WHITEN_MAX_BLOCK = 400
 
 
 # ----------------------------------------------------------------------------- bouts
@@ -252,6 +254,52 @@ class BoutNoise:
             ry[bouts.order] = fwd + bwd - ys
             out = out + self.sigma_ar_g**2 * ry
         return out
+
+    def whitener(self, bouts: Bouts, indep_var_g2: np.ndarray, max_block: int = WHITEN_MAX_BLOCK):
+        """``W`` with ``W Sigma W' = I``: a function ``y (n,) or (n, m) -> W y`` (input order).
+
+        ``Sigma`` is block-diagonal by bout: ``diag(indep_var_g2) + sigma_bout^2 11' +
+        sigma_ar^2 exp(-|t_i - t_j| / tau)``. Each bout's block is factored (Cholesky,
+        ``Sigma_k = L_k L_k'``) and ``W_k = L_k^-1``, batched over the bouts of one size. A
+        bout longer than ``max_block`` windows is whitened in consecutive pieces of at most
+        that many, as if they were separate bouts (the shared error then counts once per
+        piece: conservative for differences between pieces, and it bounds the memory at
+        ``n * max_block`` values).
+
+        Parameters
+        ----------
+        bouts : Bouts
+        indep_var_g2 : (n,) each window's independent variance (g²): measured noise plus
+            ``sigma_white^2``
+        """
+        indep = np.asarray(indep_var_g2, float)
+        lab = bouts.label_sorted
+        order = bouts.order
+        n = len(order)
+        start = np.r_[True, lab[1:] != lab[:-1]] if n else np.zeros(0, bool)
+        pos = np.arange(n) - np.maximum.accumulate(np.where(start, np.arange(n), 0))
+        piece = np.cumsum(start | (pos % max_block == 0)) - 1  # pieces of at most max_block, time order
+        sizes = np.bincount(piece) if n else np.zeros(0, int)
+        first = np.r_[0, np.cumsum(sizes)[:-1]].astype(int)
+        ar = self.sigma_ar_g > 0 and np.isfinite(self.tau_s) and self.tau_s > 0
+        groups = []
+        for m in np.unique(sizes).tolist():
+            idx = order[first[sizes == m][:, None] + np.arange(m)]  # (k, m) input-order indices, time order
+            cov = np.zeros((len(idx), m, m)) + self.sigma_bout_g**2
+            if ar:
+                t = bouts.t_sorted[first[sizes == m][:, None] + np.arange(m)]
+                cov += self.sigma_ar_g**2 * np.exp(-np.abs(t[:, :, None] - t[:, None, :]) / self.tau_s)
+            cov[:, np.arange(m), np.arange(m)] += indep[idx]
+            groups.append((idx, np.linalg.inv(np.linalg.cholesky(cov))))
+
+        def apply(y: np.ndarray) -> np.ndarray:
+            y = np.asarray(y, float)
+            out = np.empty_like(y)
+            for idx, winv in groups:
+                out[idx] = winv @ y[idx] if y.ndim > 1 else (winv @ y[idx][..., None])[..., 0]
+            return out
+
+        return apply
 
     def to_report(self) -> dict:
         """JSON summary in mg and s."""

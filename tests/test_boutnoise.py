@@ -68,6 +68,28 @@ def test_covariance_product_and_draws_match_the_dense_covariance():
     assert np.max(np.abs(np.cov(draws.T) - expected)) < 0.03 * expected.max()
 
 
+@pytest.mark.parametrize("max_block", [400, 3])
+def test_the_whitener_inverts_the_dense_covariance(max_block):
+    rng = np.random.default_rng(4)
+    t, g = _small_case(rng)
+    perm = rng.permutation(len(t))  # input order need not be time order
+    t, g = t[perm], g[perm]
+    bouts = find_bouts(t, g, gap_s=30.0)
+    model = BoutNoise(sigma_bout_g=2e-3, sigma_ar_g=1e-3, tau_s=50.0)
+    indep = rng.uniform(1e-6, 9e-6, len(t))
+    dense = _dense_cov(model, bouts, t, indep + model.correlated_var_g2)
+    w = model.whitener(bouts, indep, max_block=max_block)
+    wm = w(np.eye(len(t)))
+    assert np.allclose(w(np.arange(len(t), dtype=float)), wm @ np.arange(len(t)), rtol=1e-12, atol=1e-9)
+    white = wm @ dense @ wm.T
+    if max_block >= bouts.sizes.max():
+        assert np.allclose(white, np.eye(len(t)), atol=1e-9)
+    else:  # bouts cut into pieces: each piece is whitened alone, the pieces' shared error is not
+        assert bouts.sizes.max() > max_block and not np.allclose(white, np.eye(len(t)), atol=1e-3)
+        piece = model.whitener(bouts, indep, max_block=len(t))(np.eye(len(t)))
+        assert np.allclose(piece @ dense @ piece.T, np.eye(len(t)), atol=1e-9)
+
+
 def _noise_model(poses):
     rep = diagnose_poses(poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"],
                          config={"diagnose": {"n_sim": 2}})
@@ -118,3 +140,29 @@ def test_projection_deltas_match_the_dense_traces():
     ar = same * np.exp(-np.abs(t[:, None] - t[None, :]) / 40.0)
     for key, mat in (("S", np.diag(s2)), ("Z", same), ("R", ar), ("I", np.eye(n))):
         assert deltas[key] == pytest.approx(2 * np.trace(proj @ mat) - np.trace(proj @ mat @ proj.T), rel=1e-10)
+
+
+def test_gls_f_is_the_dense_generalised_least_squares_f():
+    from selfcal.diagnosis import _gls_f
+
+    rng = np.random.default_rng(5)
+    t, g = _small_case(rng)
+    bouts = find_bouts(t, g, gap_s=30.0)
+    model = BoutNoise(sigma_bout_g=2e-3, sigma_ar_g=1e-3, tau_s=50.0)
+    indep = rng.uniform(1e-6, 9e-6, len(t))
+    dense = _dense_cov(model, bouts, t, indep + model.correlated_var_g2)
+    n = len(t)
+    x = np.column_stack([np.ones(n), g[:, 2], t / t.max()])
+    c = np.column_stack([np.sin(t / 40.0), g[:, 0] * t / t.max()])
+    r = np.linalg.cholesky(dense) @ rng.standard_normal(n) + 1e-3 * c[:, 0]
+    f, dof = _gls_f(model.whitener(bouts, indep), r, x, c)
+    # the textbook form: whiten with the dense Cholesky factor, compare the two least-squares fits
+    w = np.linalg.inv(np.linalg.cholesky(dense))
+
+    def rss(a):
+        beta, *_ = np.linalg.lstsq(w @ a, w @ r, rcond=None)
+        return float(np.sum((w @ r - w @ a @ beta) ** 2))
+
+    rss0, rss1 = rss(x), rss(np.column_stack([x, c]))
+    assert dof == n - 5
+    assert f == pytest.approx(((rss0 - rss1) / 2) / (rss1 / dof), rel=1e-9)
