@@ -1,7 +1,8 @@
 """The correlated-noise model of `selfcal diagnose` (selfcal/boutnoise.py), measured.
 
 1. The GGIR 84-h wrist record under both noise models (``[diagnose] noise_model``
-   ``independent``, the former behaviour, and ``bouts``): lag-1 autocorrelation and bout
+   ``independent``, the former behaviour, and ``bouts``), and under the bout noise with
+   the opt-in GLS test (``correlated_test = "gls"``): lag-1 autocorrelation and bout
    share of the base-fit residuals, measured and simulated; the fitted noise terms; each
    candidate's F, design effect and the cause.
 2. The same record under other bout rules (gap, turn): how much the numbers depend on it.
@@ -9,7 +10,7 @@
    white terms over seeds (mean and sd of the estimates, share within 3 bootstrap sds).
 4. Calls on bout-structured sets, effect-free and with a 0.3 mg/degC temperature bias, with
    a 2 mg per-bout error and a 1 mg AR(1) term: false alarms and named rate under both
-   noise models (95 % Wilson intervals).
+   noise models and with the GLS test (95 % Wilson intervals).
 5. Effect-free insole sets (tests/effectgen.py, windows far apart): false alarms under both.
 6. The test of independence within bouts on independent residuals: its rejection rate.
 
