@@ -13,6 +13,10 @@
    noise models and with the GLS test (95 % Wilson intervals).
 5. Effect-free insole sets (tests/effectgen.py, windows far apart): false alarms under both.
 6. The test of independence within bouts on independent residuals: its rejection rate.
+7. The 84-h record within its bouts, after the ``temperature_bias`` fit: the residual
+   (de-meaned per bout) against the time since the bout began, and the GLS test's F of
+   each candidate with settling columns (each axis times ``exp(-t_since / tau)``) added
+   to the base model's as nuisance.
 
 Usage: ``python bench/bout_noise.py [--seeds N] [--skip-record]``.
 """
@@ -225,6 +229,57 @@ def independence_section(reps: int = 1000) -> None:
           f"p < 0.05 in {np.mean(p < 0.05):.1%}, p < 0.5 in {np.mean(p < 0.5):.1%}\n")
 
 
+def settling_section(n_sim: int) -> None:
+    print("## 7. The 84-h record within its bouts (after the temperature_bias fit)\n")
+    from selfcal import diagnosis
+
+    rep, _ = diagnose_recording(RECORD, {"diagnose": {"n_sim": n_sim}}, keep_arrays=True)
+    arr = rep["_arrays"]
+    t, g, r, temp = arr["t_s"], arr["gdir"], arr["res_ext_mg"], arr["temp_c"]
+    bouts = find_bouts(t, g)
+    o = bouts.order
+    lab = bouts.label[o]
+    ts = t[o]
+    start = np.r_[True, lab[1:] != lab[:-1]]
+    first = np.maximum.accumulate(np.where(start, np.arange(len(ts)), 0))
+    since = np.empty(len(t))
+    since[o] = ts - ts[first]
+    lab_in = bouts.label
+    count = np.bincount(lab_in)
+    dev = r - (np.bincount(lab_in, r) / count)[lab_in]
+    dtemp = temp - (np.bincount(lab_in, temp) / count)[lab_in]
+    big = count[lab_in] >= 10
+    print(f"{len(np.unique(lab_in[big]))} bouts of >= 10 windows\n")
+    print("| time since the bout began (s) | windows | residual, de-meaned per bout, mean of the bouts' means (mg) | temperature, de-meaned (degC) |")
+    print("|---|---:|---|---:|")
+    edges = [0, 15, 30, 60, 120, 240, 480, 960, np.inf]
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = big & (since >= lo) & (since < hi)
+        if m.sum() >= 20:
+            # the sd of the mean from the bouts' own means in the bin (windows of one bout are correlated)
+            per_bout = np.bincount(lab_in[m], dev[m])[np.unique(lab_in[m])] / np.bincount(lab_in[m])[np.unique(lab_in[m])]
+            k = len(per_bout)
+            se = per_bout.std(ddof=1) / np.sqrt(k) if k > 1 else float("nan")
+            print(f"| {lo:g}-{hi:g} | {m.sum()} in {k} bouts | {per_bout.mean():+.3f} ± {se:.3f} | "
+                  f"{dtemp[m].mean():+.3f} |")
+    nuisance = np.column_stack([g[:, i] * np.exp(-since / tau) for tau in (60.0, 180.0, 600.0) for i in range(3)])
+    plain = diagnosis._gls_f
+    print("\n| candidate | GLS F | GLS F with settling columns as nuisance |")
+    print("|---|---:|---:|")
+    rows = {}
+    try:
+        for label, extra in (("plain", None), ("settling", nuisance)):
+            diagnosis._gls_f = (lambda w, r, x, c, extra=extra:
+                                plain(w, r, x if extra is None else np.column_stack([x, extra]), c))
+            rep, _ = diagnose_recording(RECORD, {"diagnose": {"n_sim": 2, "correlated_test": "gls"}})
+            rows[label] = {e["name"]: e.get("f_stat") for e in rep["effects"]}
+    finally:
+        diagnosis._gls_f = plain
+    for name in rows["plain"]:
+        print(f"| {name} | {_fmt(rows['plain'][name], 4)} | {_fmt(rows['settling'][name], 4)} |")
+    print()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20, help="seeds per synthetic cell")
@@ -235,6 +290,7 @@ def main(argv=None) -> int:
         record_section(args.n_sim)
         residual_section()
         rule_section(max(args.n_sim // 2, 2))
+        settling_section(args.n_sim)
     recovery_section(args.seeds)
     calls_section(args.seeds)
     effectgen_section(args.seeds)
