@@ -51,6 +51,22 @@ def metrics(port: int) -> dict[str, float]:
     return out
 
 
+def gc_pauses(port: int) -> dict:
+    """The API processes' garbage-collector pauses so far, from ``/metrics``: per generation,
+    ``(count, total s, count longer than 10 ms)``."""
+    try:
+        m = metrics(port)
+    except Exception:  # noqa: BLE001 - the figure is missing, the run is not
+        return {}
+    out = {}
+    for g in (0, 1, 2):
+        lab = f'generation="{g}"'
+        n = m.get(f"selfcal_gc_pause_seconds_count{{{lab}}}", float("nan"))
+        under = m.get(f'selfcal_gc_pause_seconds_bucket{{{lab},le="0.01"}}', float("nan"))
+        out[g] = (n, m.get(f"selfcal_gc_pause_seconds_sum{{{lab}}}", float("nan")), n - under)
+    return out
+
+
 def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dict:
     port = free_port()
     env = dict(os.environ, SELFCAL_API_KEYS=f"{KEY}=ingest+read")
@@ -93,7 +109,7 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
         if not rows:
             raise RuntimeError(f"{label}: the load process printed nothing: {load.stderr[-1000:]}")
         r = rows[-1]
-        r.update(label=label, procs=procs, refit_workers=len(workers), backlog=backlog)
+        r.update(label=label, procs=procs, refit_workers=len(workers), backlog=backlog, gc=gc_pauses(port))
         return r
     finally:
         stop.set()
@@ -149,6 +165,9 @@ def main() -> int:
                   f"last {ages[-1] if ages else float('nan'):.1f} s", flush=True)
             print(f"    the same GETs from inside the load generator's loop: p50 {r['get_p50_ms']:.2f} ms, "
                   f"p99 {r['get_p99_ms']:.2f} ms", flush=True)
+            if r.get("gc"):
+                print("    garbage-collector pauses of the API process(es) (generation: count, total, over 10 ms): " + "; ".join(
+                    f"{g}: {n:.0f}, {tot * 1e3:.0f} ms, {long_:.0f}" for g, (n, tot, long_) in r["gc"].items()), flush=True)
             print("    backlog over time (s: oldest age s / batches): " + ", ".join(
                 f"{t:.0f}: {a:.1f}/{b:.0f}" for t, a, b in r["backlog"]), flush=True)
     # refit throughput: what was acknowledged minus what piled up (slope of the backlog)

@@ -371,6 +371,21 @@ DeviceId = Annotated[
 ]
 
 
+def tune_gc(settings: Settings) -> None:
+    """The cyclic garbage collector, set for a long-running server process: one full
+    collection, then ``gc.freeze()`` (``settings.gc_freeze``), so that the objects that
+    exist now (modules, the app, the store) are never scanned again; and the young
+    generation's threshold (``settings.gc_gen0_threshold``). A full collection of an
+    unfrozen API process took up to 186 ms under load, and every request waited."""
+    import gc
+
+    _, t1, t2 = gc.get_threshold()
+    gc.set_threshold(settings.gc_gen0_threshold, t1, t2)
+    if settings.gc_freeze:
+        gc.collect()
+        gc.freeze()
+
+
 def create_app(
     settings: Settings,
     calibrator_factory: CalibratorFactory | None = None,
@@ -417,9 +432,16 @@ def create_app(
             metrics.gauge("selfcal_db_write_queue_depth", st.queue_depth)
             metrics.counter_from("selfcal_db_commits_total", lambda: st.commits)
             metrics.counter_from("selfcal_db_writes_total", lambda: st.ops_committed)
+        tune_gc(settings)
+        metrics.track_gc()
         try:
             yield
         finally:
+            metrics.untrack_gc()
+            if settings.gc_freeze:
+                import gc
+
+                gc.unfreeze()  # back to the collector (tests run many apps in one process)
             if settings.refit_in_process:
                 worker.stop()
             st.close()

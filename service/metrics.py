@@ -62,6 +62,8 @@ class Metrics:
         "selfcal_http_timeouts_total": ("counter", "connections closed for a slow request head or body, by kind"),
         "selfcal_http_internal_errors_total": ("counter", "unexpected exceptions answered with 500"),
         "selfcal_http_request_duration_seconds": ("histogram", "request latency by route and status class"),
+        "selfcal_gc_pause_seconds": ("histogram", "pauses of the cyclic garbage collector by generation: every "
+                                                  "thread of the process waits (summed over the processes)"),
     }
 
     def __init__(self, shared_dir: str | Path | None = None) -> None:
@@ -77,6 +79,45 @@ class Metrics:
         if self.shared_dir is not None:
             self.shared_dir.mkdir(parents=True, exist_ok=True)
             threading.Thread(target=self._publish_loop, name="selfcal-metrics", daemon=True).start()
+
+    def track_gc(self) -> None:
+        """Time every cyclic garbage collection of this process into ``selfcal_gc_pause_seconds``
+        (one histogram per generation). The callback runs inside whichever thread triggered
+        the collection, possibly while that thread holds this registry's lock, so it takes
+        no lock: under the GIL an update can at worst lose a count to a concurrent one."""
+        import gc
+
+        started = [0.0]
+        hists = {g: [0.0] * (len(LATENCY_BUCKETS_S) + 2) for g in (0, 1, 2)}
+        for g, h in hists.items():
+            self._hist[("selfcal_gc_pause_seconds", (("generation", str(g)),))] = h
+
+        def on_gc(phase: str, info: dict) -> None:
+            if phase == "start":
+                started[0] = time.perf_counter()
+                return
+            h = hists.get(info.get("generation"))
+            if h is None:
+                return
+            pause = time.perf_counter() - started[0]
+            for i, edge in enumerate(LATENCY_BUCKETS_S):
+                if pause <= edge:
+                    h[i] += 1
+                    break
+            h[-2] += 1
+            h[-1] += pause
+
+        gc.callbacks.append(on_gc)
+        self._gc_callback = on_gc
+
+    def untrack_gc(self) -> None:
+        """Remove the callback of :meth:`track_gc` (at shutdown; tests make many apps)."""
+        import gc
+
+        cb = getattr(self, "_gc_callback", None)
+        if cb is not None and cb in gc.callbacks:
+            gc.callbacks.remove(cb)
+        self._gc_callback = None
 
     # ------------------------------------------------------------ several processes
     def counter_from(self, name: str, fn: Callable[[], float]) -> None:

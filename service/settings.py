@@ -75,6 +75,13 @@ class Settings(BaseModel):
     gil_switch_interval_s: float = Field(
         0.001, gt=0, le=0.1, description="sys.setswitchinterval: refit threads yield the GIL to requests sooner"
     )
+    gc_freeze: bool = Field(
+        True, description="gc.freeze() once the app is up: what was imported and built at start leaves the cyclic "
+                          "collector's full scans (each stalls every request; docs/service.md)"
+    )
+    gc_gen0_threshold: int = Field(
+        700, ge=100, le=1_000_000, description="gc.set_threshold's first value: allocations between young collections"
+    )
     header_timeout_s: float = Field(
         10.0, gt=0, le=600, description="a request's line and headers must arrive within this (slow clients)"
     )

@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         from selfcal_service.logs import redact_url
-        from selfcal_service.main import make_worker
+        from selfcal_service.main import make_worker, tune_gc
         from selfcal_service.metrics import Metrics
         from selfcal_service.pg_store import PostgresStore, is_postgres_url
         from selfcal_service.settings import load_settings
@@ -99,6 +99,8 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
+    tune_gc(settings)
+    metrics.track_gc()
     worker.start()
     print(f"selfcal worker {worker.lease.owner}: db={redact_url(settings.db_path)}, "
           f"threads={settings.worker_threads}, lease {settings.lease_ttl_s:g} s", file=sys.stderr, flush=True)

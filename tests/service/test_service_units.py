@@ -303,3 +303,43 @@ def test_per_process_gauges_carry_the_pid_and_a_dead_process_drops_out(tmp_path)
     assert 'pid="4343"' not in text  # a dead process's gauges go away ...
     assert "selfcal_ingest_samples_total 9" in text  # ... its counters stay (5 + 2 + 2)
     assert "selfcal_backlog_batches 7" in text and 'selfcal_backlog_batches{' not in text
+
+
+def test_gc_pauses_are_timed_by_generation_and_the_callback_goes_away():
+    import gc
+
+    from selfcal_service.metrics import Metrics
+
+    m = Metrics()
+    before = len(gc.callbacks)
+    m.track_gc()
+    try:
+        gc.collect()  # a full collection: generation 2
+        text = m.render()
+    finally:
+        m.untrack_gc()
+    assert len(gc.callbacks) == before
+    counts = {line.split("{")[1].split("}")[0]: float(line.rpartition(" ")[2])
+              for line in text.splitlines() if line.startswith("selfcal_gc_pause_seconds_count")}
+    assert counts['generation="2"'] >= 1
+    gc.collect()  # untracked: no more counts
+    assert m._hist[("selfcal_gc_pause_seconds", (("generation", "2"),))][-2] == counts['generation="2"']
+
+
+def test_tune_gc_freezes_what_exists_and_sets_the_young_threshold():
+    import gc
+
+    from selfcal_service.main import tune_gc
+
+    old = gc.get_threshold()
+    try:
+        tune_gc(load_settings({"gc_gen0_threshold": 5000}, environ={}))
+        assert gc.get_freeze_count() > 0 and gc.get_threshold()[0] == 5000
+    finally:
+        gc.unfreeze()
+        gc.set_threshold(*old)
+    tune_gc(load_settings({"gc_freeze": False}, environ={}))
+    try:
+        assert gc.get_freeze_count() == 0
+    finally:
+        gc.set_threshold(*old)
