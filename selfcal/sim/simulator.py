@@ -248,16 +248,15 @@ class Simulation:
         i0 = int(s.start[a])
         total = int(counts.sum())
         loc = s.start[a:b] - i0
-        seg = np.repeat(np.arange(a, b), counts)
         # true specific force: gravity everywhere, then sway, moves, gait
         f = np.repeat(gravity_foot(s.pitch0[a:b], s.roll0[a:b]), counts, axis=0)
         motion = s.motion[a:b]
         phase = np.full(total, np.nan)
         still_mask = np.repeat(motion == STILL, counts)
         sway = np.repeat(np.where(motion == STILL, s.sd_g[a:b], 0.0), counts)
-        swaying = sway > 0
-        if swaying.any():
-            k = int(swaying.sum())
+        swaying = np.flatnonzero(sway > 0)  # rows by integer index: the same values, faster than a mask
+        if len(swaying):
+            k = len(swaying)
             f[swaying] += lowpass_noise(rngs["motion"], k, rate, cfg.posture.sway_corner_hz) * sway[swaying, None]
         mv = np.flatnonzero(motion == MOVE)
         if len(mv):
@@ -275,17 +274,20 @@ class Simulation:
             phase[loc[k]:loc[k] + n] = ph
         index = np.arange(i0, i0 + total, dtype=np.int64)
         t_s = index / rate
-        tau = (index - s.start[seg]) / rate
-        temp_true, _ = temperature_at(tau, s.temp0_c[seg], s.heat0_c[seg], s.temp_target_c[seg],
-                                      s.heat_target_c[seg], s.tau_t_s[seg], s.tau_h_s[seg], s.on_foot[seg])
+        per_sample = lambda x: np.repeat(x[a:b], counts, axis=0)  # noqa: E731 - x[seg], as a faster copy
+        tau = (index - per_sample(s.start)) / rate
+        temp_true, _ = temperature_at(tau, per_sample(s.temp0_c), per_sample(s.heat0_c), per_sample(s.temp_target_c),
+                                      per_sample(s.heat_target_c), per_sample(s.tau_t_s), per_sample(s.tau_h_s),
+                                      per_sample(s.on_foot))
         raw = read_out(self.truth.sensor, sensor_mean(self.truth.sensor, f, temp_true, t_s), rngs["noise"])
         temp_rep = _report_temperature(temp_true, cfg, rngs["temperature"])
         moving = np.repeat(motion == MOVE, counts)
-        press = pressure_kpa(s.load[seg], phase, moving, s.stand_kpa, cfg.pressure, rngs["pressure"], rate)
+        press = pressure_kpa(per_sample(s.load), phase, moving, s.stand_kpa, cfg.pressure, rngs["pressure"], rate)
         keep = _radio_keep(index, cfg.ble.samples_per_packet, cfg.ble.packet_loss_rate, rngs["radio"], carry)
+        rows = lambda x: np.compress(keep, x, axis=0)  # noqa: E731 - the same rows as x[keep], faster on (n, k)
         return SampleChunk(
-            t_s=t_s[keep], acc_g=raw[keep], temp_c=temp_rep[keep], pressure_kpa=press[keep],
-            a_true_g=f[keep], temp_true_c=temp_true[keep], activity=np.repeat(s.activity[a:b], counts)[keep],
+            t_s=t_s[keep], acc_g=rows(raw), temp_c=temp_rep[keep], pressure_kpa=rows(press),
+            a_true_g=rows(f), temp_true_c=temp_true[keep], activity=np.repeat(s.activity[a:b], counts)[keep],
             still=still_mask[keep], index=index[keep],
         )
 
