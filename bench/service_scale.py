@@ -69,7 +69,7 @@ def gc_pauses(port: int) -> dict:
 
 def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dict:
     port = free_port()
-    env = dict(os.environ, SELFCAL_API_KEYS=f"{KEY}=ingest+read")
+    env = dict(os.environ, SELFCAL_API_KEYS=f"{KEY}=ingest+read", SELFCAL_MIN_CYCLE_INTERVAL_S=str(args.min_cycle_s))
     cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", db, "--port", str(port), "--log-level", "warning"]
     if db.startswith("postgresql"):
         cmd += ["--workers", str(procs), "--no-refit"]
@@ -109,7 +109,13 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
         if not rows:
             raise RuntimeError(f"{label}: the load process printed nothing: {load.stderr[-1000:]}")
         r = rows[-1]
-        r.update(label=label, procs=procs, refit_workers=len(workers), backlog=backlog, gc=gc_pauses(port))
+        try:
+            m = metrics(port)
+            fed = (m.get("selfcal_worker_cycles_total", float("nan")), m.get("selfcal_worker_samples_total", float("nan")))
+        except Exception:  # noqa: BLE001 - the figure is missing, the run is not
+            fed = (float("nan"), float("nan"))
+        r.update(label=label, procs=procs, refit_workers=len(workers), backlog=backlog, gc=gc_pauses(port),
+                 cycles=fed[0], samples_fed=fed[1])
         return r
     finally:
         stop.set()
@@ -135,6 +141,8 @@ def main() -> int:
     ap.add_argument("--worker-idle", action="store_true", help="selfcal worker --idle (SCHED_IDLE, Linux)")
     ap.add_argument("--worker-threads", type=int, default=1, help="refit threads of each worker (and of SQLite's process)")
     ap.add_argument("--format", choices=["json", "binary"], default="binary")
+    ap.add_argument("--min-cycle-s", type=float, default=0.0,
+                    help="[service] min_cycle_interval_s of the refit workers and SQLite's process (0: as batches come)")
     ap.add_argument("--no-sqlite", action="store_true")
     args = ap.parse_args()
 
@@ -153,6 +161,7 @@ def main() -> int:
         for n in [int(x) for x in args.procs.split(",")]:
             nice = f" (nice {args.worker_nice})" if args.worker_nice and args.refit_workers else ""
             nice += " (idle)" if args.worker_idle and args.refit_workers else ""
+            nice += f" (cycles >= {args.min_cycle_s:g} s apart)" if args.min_cycle_s and args.refit_workers else ""
             configs.append((f"postgresql, {n} API + {args.refit_workers} worker{nice}",
                             pg.create_database(f"scale_{n}"), n))
         for label, db, n in configs:
@@ -165,6 +174,8 @@ def main() -> int:
                   f"last {ages[-1] if ages else float('nan'):.1f} s", flush=True)
             print(f"    the same GETs from inside the load generator's loop: p50 {r['get_p50_ms']:.2f} ms, "
                   f"p99 {r['get_p99_ms']:.2f} ms", flush=True)
+            print(f"    refit cycles committed: {r['cycles']:,.0f} for {r['samples_fed']:,.0f} samples fed "
+                  f"({r['samples_fed'] / max(r['cycles'], 1) / (args.batch_s * 20):.1f} batches a cycle)", flush=True)
             if r.get("gc"):
                 print("    garbage-collector pauses of the API process(es) (generation: count, total, over 10 ms): " + "; ".join(
                     f"{g}: {n:.0f}, {tot * 1e3:.0f} ms, {long_:.0f}" for g, (n, tot, long_) in r["gc"].items()), flush=True)

@@ -348,6 +348,7 @@ def make_worker(store: Storage, factory: CalibratorFactory, metrics: Metrics, se
         max_batches_per_cycle=settings.worker_max_batches_per_cycle,
         time_reset_gap_s=settings.time_reset_gap_s,
         reorder_window_s=settings.reorder_window_s,
+        min_cycle_interval_s=settings.min_cycle_interval_s,
         lease=lease,
     )
     return worker

@@ -44,6 +44,7 @@ class Metrics:
         "selfcal_ingest_duplicates_total": ("counter", "resent batches acknowledged, not stored again"),
         "selfcal_ingest_rejected_total": ("counter", "rejected sample batches by HTTP status"),
         "selfcal_worker_samples_total": ("counter", "samples fed to calibrators"),
+        "selfcal_worker_cycles_total": ("counter", "refit-worker cycles committed (each writes the device's calibrator state)"),
         "selfcal_refits_total": ("counter", "refit outcomes by outcome (published or typed reason)"),
         "selfcal_worker_errors_total": ("counter", "worker cycles that failed (retried)"),
         "selfcal_rejected_batches_total": ("counter", "stored batches not fed, by reason (late, calibrator)"),

@@ -47,6 +47,12 @@ class Settings(BaseModel):
     time_reset_gap_s: float = Field(
         60.0, gt=0, description="gap inserted when a device clock goes backwards (reboot)"
     )
+    min_cycle_interval_s: float = Field(
+        0.0, ge=0, le=3600,
+        description="a device's batches are fed at most once per this many seconds (0: as they come); every cycle "
+                    "writes the device's whole calibrator state, so a fleet at steady state wants 60-300 s "
+                    "(bench/state_size.py); a device with a backlog is not held",
+    )
     reorder_window_s: float = Field(
         10.0, ge=0, le=3600,
         description="a batch whose predecessor seq is missing waits this long for it before being fed",

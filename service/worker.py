@@ -169,6 +169,7 @@ class RefitWorker:
         max_batches_per_cycle: int = 256,
         time_reset_gap_s: float = 60.0,
         reorder_window_s: float = 10.0,
+        min_cycle_interval_s: float = 0.0,
         lease: "LeaseConfig | None" = None,
     ):
         self.store = store
@@ -185,6 +186,9 @@ class RefitWorker:
         self._held: set[str] = set()  # devices waiting out the reorder window
         self._held_lock = threading.Lock()
         self.reorder_window_s = reorder_window_s
+        # a device fed everything it had is fed again at most this often (monotonic s of its last cycle)
+        self.min_cycle_interval_s = min_cycle_interval_s
+        self._last_cycle: dict[str, float] = {}
         self.busy = 0  # devices being processed right now
         self.cycles = 0
         self.conflicts = 0  # cycles dropped because another writer changed the device
@@ -355,6 +359,12 @@ class RefitWorker:
 
     def _process(self, device_id: str) -> bool:
         with self.device_lock(device_id):
+            if self.min_cycle_interval_s > 0:  # let batches gather: one state write for several
+                last = self._last_cycle.get(device_id)
+                wait = 0.0 if last is None else last + self.min_cycle_interval_s - time.monotonic()
+                if wait > 0:
+                    self._hold(device_id, wait)
+                    return False
             rec = self.store.load_device(device_id)
             if rec is None:
                 return False
@@ -406,7 +416,13 @@ class RefitWorker:
             rev = None if rec.state_rev is None else rec.state_rev + 1
             self._cache[device_id] = ((progress.processed_seq, rev), cal)
             self.cycles += 1
+            more = len(rows) >= self.max_batches
+            if more:
+                self._last_cycle.pop(device_id, None)  # a backlog is worked off without waiting
+            else:
+                self._last_cycle[device_id] = time.monotonic()
             self.metrics.inc("selfcal_worker_samples_total", samples)
+            self.metrics.inc("selfcal_worker_cycles_total")
             for _, n, reason in rejected:
                 kind = reason.split(":", 1)[0]
                 self.metrics.inc("selfcal_rejected_batches_total", reason=kind)
@@ -414,7 +430,7 @@ class RefitWorker:
             for ev in events:
                 outcome = "published" if ev.get("published") else str(ev.get("reason") or "unknown")
                 self.metrics.inc("selfcal_refits_total", outcome=outcome)
-            return len(rows) >= self.max_batches
+            return more
 
     def _hold(self, device_id: str, delay_s: float) -> None:
         """Look at a device again after ``delay_s`` (batches held for the reorder window)."""

@@ -437,3 +437,28 @@ def test_json_logs_carry_the_request_id_and_the_device(tmp_path):
     assert hit and hit[0]["device_id"] == "dev-json" and hit[0]["level"] == "error"
     assert "Traceback" in hit[0]["exc"] and "unhandled error" in hit[0]["msg"]
     assert all({"ts", "level", "logger", "msg", "pid"} <= set(r) for r in records)
+
+
+# ------------------------------------------------------------------------ coalesced cycles
+def test_min_cycle_interval_gathers_a_devices_batches_into_one_cycle(tmp_path):
+    # every cycle writes the device's whole calibrator state; with an interval the batches
+    # that arrive within it are fed together, later, and none is lost or reordered
+    s = server(tmp_path, min_cycle_interval_s=4.0)
+    try:
+        with s.client() as c:
+            assert c.post("/devices/g1/samples", json=batch_json(0)).status_code == 200
+            first = s.wait_settled("g1", 1)  # the first cycle is not held
+            t_posted = time.monotonic()
+            for seq in (1, 2, 3):
+                assert c.post("/devices/g1/samples", json=batch_json(seq, t0_s=seq)).status_code == 200
+        with s.client("read") as c:
+            early = c.get("/devices/g1/calibration").json()
+        if time.monotonic() - t_posted < 3.0:  # (a machine slower than that proves nothing here)
+            assert early["processed_seq"] == 0 and early["samples_processed"] == 20
+        body = s.wait_settled("g1", 4)
+        assert body["processed_seq"] == 3 and body["samples_processed"] == 80
+        assert first["processed_seq"] == 0
+        n, t_sum = fed_checksum(s, "g1")
+        assert n == 80
+    finally:
+        s.stop()
