@@ -55,10 +55,9 @@ from diagnose_power import RANGES, SEED_BASE  # noqa: E402  (the same cells and 
 from effectgen import hidden_effect_case  # noqa: E402
 
 
-def noncentrality(effect: str, strength: float, seed: int, n_poses: int, alphas=(), draws: int = 0):
-    """``lam`` of one case: the whitened squared residual of the base model's fit to its
-    noise-free means (dimensionless). With ``draws``, also the ``MAX6`` rate of naming the
-    effect at each false-alarm rate of ``alphas``: ``(lam, rates)``."""
+def base_fit_of_case(effect: str, strength: float, seed: int, n_poses: int):
+    """One case's noise-free means fitted by the base model (weighted LS, flat prior):
+    ``(fit, mean (n, 3) g, PoseData, sigma (n,) g, mu (n,))``, ``mu`` the whitened residuals."""
     from selfcal.fit import FitConfig, PoseData, datasheet_prior, fit_poses, pose_sigma
     from selfcal.models import ErrorModel
 
@@ -71,10 +70,18 @@ def noncentrality(effect: str, strength: float, seed: int, n_poses: int, alphas=
     fit = fit_poses(model, data, prior=datasheet_prior(model, cfg, inflate=1e3), cfg=cfg)
     sigma = pose_sigma(mean, np.asarray(poses["sd"], float), np.asarray(poses["count"], float), cfg)
     r, _ = model.residual_jac(fit.theta_u, mean, data.temp_c, data.t_s)
-    lam = float(np.sum((r / sigma) ** 2))
+    return fit, mean, data, sigma, r / sigma
+
+
+def noncentrality(effect: str, strength: float, seed: int, n_poses: int, alphas=(), draws: int = 0):
+    """``lam`` of one case: the whitened squared residual of the base model's fit to its
+    noise-free means (dimensionless). With ``draws``, also the ``MAX6`` rate of naming the
+    effect at each false-alarm rate of ``alphas``: ``(lam, rates)``."""
+    fit, mean, data, sigma, mu = base_fit_of_case(effect, strength, seed, n_poses)
+    lam = float(mu @ mu)
     if not draws:
         return lam
-    return lam, max_lr_rates(fit, mean, data, sigma, r / sigma, effect, alphas, draws, seed)
+    return lam, max_lr_rates(fit, mean, data, sigma, mu, effect, alphas, draws, seed)
 
 
 def max_lr_rates(fit, mean, data, sigma, mu, effect: str | None, alphas, draws: int, seed: int) -> list[float]:

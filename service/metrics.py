@@ -28,6 +28,16 @@ GAUGE_FRESH_S = 5.0
 LATENCY_BUCKETS_S = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5)
 
 
+def _count(h: list[float], value_s: float) -> None:
+    """Add one observation (s) to a histogram ``[bucket counts…, count, sum]``."""
+    for i, edge in enumerate(LATENCY_BUCKETS_S):
+        if value_s <= edge:
+            h[i] += 1
+            break
+    h[-2] += 1
+    h[-1] += value_s
+
+
 def _labels(labels: tuple[tuple[str, str], ...]) -> str:
     if not labels:
         return ""
@@ -100,13 +110,7 @@ class Metrics:
             h = hists.get(info.get("generation"))
             if h is None:
                 return
-            pause = time.perf_counter() - started[0]
-            for i, edge in enumerate(LATENCY_BUCKETS_S):
-                if pause <= edge:
-                    h[i] += 1
-                    break
-            h[-2] += 1
-            h[-1] += pause
+            _count(h, time.perf_counter() - started[0])
 
         gc.callbacks.append(on_gc)
         self._gc_callback = on_gc
@@ -221,12 +225,7 @@ class Metrics:
             h = self._hist.get(key)
             if h is None:
                 h = self._hist[key] = [0.0] * (len(LATENCY_BUCKETS_S) + 2)  # buckets, count, sum
-            for i, edge in enumerate(LATENCY_BUCKETS_S):
-                if value_s <= edge:
-                    h[i] += 1
-                    break
-            h[-2] += 1
-            h[-1] += value_s
+            _count(h, value_s)
 
     def render(self) -> str:
         lines: list[str] = []

@@ -51,13 +51,22 @@ def test_bouts_split_at_gaps_and_turns():
     assert bouts.n_bouts == 1 + int(np.sum((gaps > 30.0) | turns))
 
 
-def test_covariance_product_and_draws_match_the_dense_covariance():
-    rng = np.random.default_rng(3)
+def _dense_case(seed: int, permute: bool = False):
+    """A small bout layout, the test's noise model, its dense covariance and the generator:
+    ``(t, g, bouts, model, indep, dense, rng)`` (``permute``: windows not in time order)."""
+    rng = np.random.default_rng(seed)
     t, g = _small_case(rng)
+    if permute:
+        perm = rng.permutation(len(t))
+        t, g = t[perm], g[perm]
     bouts = find_bouts(t, g, gap_s=30.0)
     model = BoutNoise(sigma_bout_g=2e-3, sigma_ar_g=1e-3, tau_s=50.0)
     indep = rng.uniform(1e-6, 9e-6, len(t))
-    dense = _dense_cov(model, bouts, t, indep + model.correlated_var_g2)
+    return t, g, bouts, model, indep, _dense_cov(model, bouts, t, indep + model.correlated_var_g2), rng
+
+
+def test_covariance_product_and_draws_match_the_dense_covariance():
+    t, g, bouts, model, indep, dense, rng = _dense_case(3)
     y = rng.normal(size=(len(t), 2))
     assert np.allclose(model.cov_matvec(bouts, indep, y), dense @ y, rtol=1e-12, atol=0)
     assert np.allclose(model.cov_matvec(bouts, indep, y[:, 0]), dense @ y[:, 0], rtol=1e-12, atol=0)
@@ -70,14 +79,7 @@ def test_covariance_product_and_draws_match_the_dense_covariance():
 
 @pytest.mark.parametrize("max_block", [400, 3])
 def test_the_whitener_inverts_the_dense_covariance(max_block):
-    rng = np.random.default_rng(4)
-    t, g = _small_case(rng)
-    perm = rng.permutation(len(t))  # input order need not be time order
-    t, g = t[perm], g[perm]
-    bouts = find_bouts(t, g, gap_s=30.0)
-    model = BoutNoise(sigma_bout_g=2e-3, sigma_ar_g=1e-3, tau_s=50.0)
-    indep = rng.uniform(1e-6, 9e-6, len(t))
-    dense = _dense_cov(model, bouts, t, indep + model.correlated_var_g2)
+    t, g, bouts, model, indep, dense, _ = _dense_case(4, permute=True)  # input order need not be time order
     w = model.whitener(bouts, indep, max_block=max_block)
     wm = w(np.eye(len(t)))
     assert np.allclose(w(np.arange(len(t), dtype=float)), wm @ np.arange(len(t)), rtol=1e-12, atol=1e-9)
@@ -145,12 +147,7 @@ def test_projection_deltas_match_the_dense_traces():
 def test_gls_f_is_the_dense_generalised_least_squares_f():
     from selfcal.diagnosis import _gls_f
 
-    rng = np.random.default_rng(5)
-    t, g = _small_case(rng)
-    bouts = find_bouts(t, g, gap_s=30.0)
-    model = BoutNoise(sigma_bout_g=2e-3, sigma_ar_g=1e-3, tau_s=50.0)
-    indep = rng.uniform(1e-6, 9e-6, len(t))
-    dense = _dense_cov(model, bouts, t, indep + model.correlated_var_g2)
+    t, g, bouts, model, indep, dense, rng = _dense_case(5)
     n = len(t)
     x = np.column_stack([np.ones(n), g[:, 2], t / t.max()])
     c = np.column_stack([np.sin(t / 40.0), g[:, 0] * t / t.max()])

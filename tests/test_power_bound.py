@@ -22,21 +22,8 @@ def _bound():
 
 
 def _case(effect: str, strength: float, seed: int):
-    from effectgen import hidden_effect_case
-    from selfcal.fit import FitConfig, PoseData, datasheet_prior, fit_poses, pose_sigma
-    from selfcal.models import ErrorModel
-
     b = _bound()
-    poses, _ = hidden_effect_case(np.random.default_rng(seed), effect, strength * b.RANGES[effect][1],
-                                  n_poses=240, noise=False)
-    mean = np.asarray(poses["mean"], float)
-    cfg = FitConfig(sigma_floor_g=0.0)
-    data = PoseData(mean, poses["sd"], poses["count"], poses["t_s"], poses["temp_c"])
-    model = ErrorModel("affine9", 25.0, 0.0)
-    fit = fit_poses(model, data, prior=datasheet_prior(model, cfg, inflate=1e3), cfg=cfg)
-    sigma = pose_sigma(mean, np.asarray(poses["sd"], float), np.asarray(poses["count"], float), cfg)
-    r, _ = model.residual_jac(fit.theta_u, mean, data.temp_c, data.t_s)
-    return b, fit, mean, data, sigma, r / sigma
+    return (b, *b.base_fit_of_case(effect, strength, seed, 240))
 
 
 @pytest.mark.parametrize("seed", [11, 12, 13])
