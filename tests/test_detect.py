@@ -214,7 +214,8 @@ def test_state_is_bounded_by_max_window():
     n = 20 * 60 * 5  # 5 min still at 20 Hz
     det = StaticDetector(DEFAULT)
     det.feed(np.arange(n) / RATE, still(rng, n))
-    b = len(det.state_dict()["t_s"])
+    d = det.state_dict()
+    b = d["n_seen"] - d["buf_start"]  # samples buffered
     assert b <= DEFAULT.max_window_samples + DEFAULT.window_samples + DEFAULT.trim_samples
 
 
@@ -382,6 +383,38 @@ def test_state_dict_checks():
         StaticDetector.from_state(DEFAULT, {**d, "version": 99})
     with pytest.raises(InputError, match="missing key"):
         StaticDetector.from_state(DEFAULT, {k: v for k, v in d.items() if k != "last_end"})
+    with pytest.raises(InputError, match="acc_g"):
+        StaticDetector.from_state(DEFAULT, {**d, "acc_g": "not base64!"})
+    with pytest.raises(InputError, match="acc_g"):
+        StaticDetector.from_state(DEFAULT, {**d, "acc_g": d["t_s"]})  # 30 values as 10 rows: lengths disagree
+
+
+def test_a_version_1_state_with_lists_still_resumes_the_same():
+    # states saved before the buffers became base64 (a service database, a checkpoint)
+    from selfcal.detect import _to_list
+
+    rng = np.random.default_rng(11)
+    n = 20 * 90
+    t, acc = np.arange(n) / RATE, still(rng, n)
+    temp = np.where(np.arange(n) % 7 == 0, np.nan, 25.0)  # NaN temperatures travel as null
+    a, b = StaticDetector(DEFAULT), StaticDetector(DEFAULT)
+    a.feed(t[:1000], acc[:1000], temp_c=temp[:1000], pressure_kpa=np.ones((1000, 4)))
+    b.feed(t[:1000], acc[:1000], temp_c=temp[:1000], pressure_kpa=np.ones((1000, 4)))
+    v2 = a.state_dict()
+    v1 = {**v2, "version": 1}
+    for key, tail in (("t_s", ()), ("acc_g", (3,)), ("temp_c", ()), ("pressure_kpa", (4,))):
+        raw = np.frombuffer(__import__("base64").b64decode(v2[key]), dtype="<f8").reshape((-1, *tail))
+        v1[key] = _to_list(raw)
+    old = StaticDetector.from_state(DEFAULT, json.loads(json.dumps(v1, allow_nan=False)))
+    new = StaticDetector.from_state(DEFAULT, json.loads(json.dumps(v2, allow_nan=False)))
+    rest = dict(temp_c=temp[1000:], pressure_kpa=np.ones((n - 1000, 4)))
+    w_old, w_new = old.feed(t[1000:], acc[1000:], **rest), new.feed(t[1000:], acc[1000:], **rest)
+    w_ref = b.feed(t[1000:], acc[1000:], **rest)
+    assert len(w_ref.t_start_s) > 0
+    for w in (w_old, w_new):
+        np.testing.assert_array_equal(w.mean_g, w_ref.mean_g)
+        np.testing.assert_array_equal(w.t_start_s, w_ref.t_start_s)
+        np.testing.assert_array_equal(w.temp_c, w_ref.temp_c)
 
 
 def test_input_errors_name_the_argument():
