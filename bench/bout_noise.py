@@ -263,18 +263,22 @@ def settling_section(n_sim: int) -> None:
             print(f"| {lo:g}-{hi:g} | {m.sum()} in {k} bouts | {per_bout.mean():+.3f} ± {se:.3f} | "
                   f"{dtemp[m].mean():+.3f} |")
     nuisance = np.column_stack([g[:, i] * np.exp(-since / tau) for tau in (60.0, 180.0, 600.0) for i in range(3)])
-    plain = diagnosis._gls_f
+    plain = diagnosis._GlsBase
+
+    class WithNuisance(plain):  # the base model's columns plus the settling columns
+        def __init__(self, whiten, r, x):
+            super().__init__(whiten, r, np.column_stack([x, nuisance]))
+
     print("\n| candidate | GLS F | GLS F with settling columns as nuisance |")
     print("|---|---:|---:|")
     rows = {}
     try:
-        for label, extra in (("plain", None), ("settling", nuisance)):
-            diagnosis._gls_f = (lambda w, r, x, c, extra=extra:
-                                plain(w, r, x if extra is None else np.column_stack([x, extra]), c))
+        for label, cls in (("plain", plain), ("settling", WithNuisance)):
+            diagnosis._GlsBase = cls
             rep, _ = diagnose_recording(RECORD, {"diagnose": {"n_sim": 2, "correlated_test": "gls"}})
             rows[label] = {e["name"]: e.get("f_stat") for e in rep["effects"]}
     finally:
-        diagnosis._gls_f = plain
+        diagnosis._GlsBase = plain
     for name in rows["plain"]:
         print(f"| {name} | {_fmt(rows['plain'][name], 4)} | {_fmt(rows['settling'][name], 4)} |")
     print()

@@ -51,13 +51,9 @@ def metrics(port: int) -> dict[str, float]:
     return out
 
 
-def gc_pauses(port: int) -> dict:
-    """The API processes' garbage-collector pauses so far, from ``/metrics``: per generation,
-    ``(count, total s, count longer than 10 ms)``."""
-    try:
-        m = metrics(port)
-    except Exception:  # noqa: BLE001 - the figure is missing, the run is not
-        return {}
+def gc_pauses(m: dict[str, float]) -> dict:
+    """The API processes' garbage-collector pauses so far, from a ``/metrics`` scrape ``m``:
+    per generation, ``(count, total s, count longer than 10 ms)``."""
     out = {}
     for g in (0, 1, 2):
         lab = f'generation="{g}"'
@@ -110,12 +106,12 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
             raise RuntimeError(f"{label}: the load process printed nothing: {load.stderr[-1000:]}")
         r = rows[-1]
         try:
-            m = metrics(port)
-            fed = (m.get("selfcal_worker_cycles_total", float("nan")), m.get("selfcal_worker_samples_total", float("nan")))
-        except Exception:  # noqa: BLE001 - the figure is missing, the run is not
-            fed = (float("nan"), float("nan"))
-        r.update(label=label, procs=procs, refit_workers=len(workers), backlog=backlog, gc=gc_pauses(port),
-                 cycles=fed[0], samples_fed=fed[1])
+            m = metrics(port)  # one scrape at the end: collector pauses and worker cycles
+        except Exception:  # noqa: BLE001 - the figures are missing, the run is not
+            m = {}
+        r.update(label=label, procs=procs, refit_workers=len(workers), backlog=backlog, gc=gc_pauses(m),
+                 cycles=m.get("selfcal_worker_cycles_total", float("nan")),
+                 samples_fed=m.get("selfcal_worker_samples_total", float("nan")))
         return r
     finally:
         stop.set()
@@ -174,8 +170,11 @@ def main() -> int:
                   f"last {ages[-1] if ages else float('nan'):.1f} s", flush=True)
             print(f"    the same GETs from inside the load generator's loop: p50 {r['get_p50_ms']:.2f} ms, "
                   f"p99 {r['get_p99_ms']:.2f} ms", flush=True)
-            print(f"    refit cycles committed: {r['cycles']:,.0f} for {r['samples_fed']:,.0f} samples fed "
-                  f"({r['samples_fed'] / max(r['cycles'], 1) / (args.batch_s * 20):.1f} batches a cycle)", flush=True)
+            if r["cycles"] > 0:
+                print(f"    refit cycles committed: {r['cycles']:,.0f} for {r['samples_fed']:,.0f} samples fed "
+                      f"({r['samples_fed'] / r['cycles'] / (args.batch_s * 20):.1f} batches a cycle)", flush=True)
+            else:  # `selfcal worker` processes keep their counters to themselves (no shared metrics folder here)
+                print("    refit cycles: counted in the worker processes, not in this /metrics", flush=True)
             if r.get("gc"):
                 print("    garbage-collector pauses of the API process(es) (generation: count, total, over 10 ms): " + "; ".join(
                     f"{g}: {n:.0f}, {tot * 1e3:.0f} ms, {long_:.0f}" for g, (n, tot, long_) in r["gc"].items()), flush=True)

@@ -337,8 +337,7 @@ def _noise_residuals(base_fit, data: _Data, effects: list[str]) -> tuple[np.ndar
         ext = base_fit.model.with_effects((eff,))
         theta = ext.extend_theta(base_fit.theta_u, base_fit.model)
         cols.append(ext.residual_jac(theta, data.u, data.temp_c, data.t_s)[1][:, ext.index(eff)])
-    u, sv, _ = np.linalg.svd(np.column_stack(cols) / sigma[:, None], full_matrices=False)
-    q = u[:, sv > sv[0] * 1e-10]
+    q = _orth(np.column_stack(cols) / sigma[:, None])
     rw = base_fit.residuals_g / sigma
     return (rw - q @ (q.T @ rw)) * sigma, (q, sigma)
 
@@ -407,22 +406,28 @@ def _orth(a: np.ndarray) -> np.ndarray:
     return u[:, sv > (sv[0] if len(sv) else 0.0) * 1e-10]
 
 
-def _gls_f(whiten, r: np.ndarray, x: np.ndarray, c: np.ndarray) -> tuple[float, int]:
-    """Score F statistic of adding the columns ``c`` (n, k) to ``x`` (n, p) for the
-    residuals ``r`` (n,), all in g, under the correlated noise whose whitener is ``whiten``
-    (:meth:`selfcal.boutnoise.BoutNoise.whitener`): the generalised-least-squares test,
-    linearised at the fit that gave ``r``. Returns ``(F, residual dof)``; F is free of the
-    noise level (the residual variance after both is its denominator)."""
-    w = whiten(np.column_stack([r, x, c]))
-    rt, xt, ct = w[:, 0], w[:, 1:1 + x.shape[1]], w[:, 1 + x.shape[1]:]
-    qx = _orth(xt)
-    e = rt - qx @ (qx.T @ rt)
-    qc = _orth(ct - qx @ (qx.T @ ct))
-    t = float(np.sum((qc.T @ e) ** 2))
-    dof = max(len(r) - qx.shape[1] - qc.shape[1], 1)
-    k = max(qc.shape[1], 1)
-    rss = max(float(e @ e) - t, 1e-300)
-    return (t / k) / (rss / dof), dof
+class _GlsBase:
+    """The residuals ``r`` (n,) and the base model's columns ``x`` (n, p), in g, whitened
+    once by ``whiten`` (:meth:`selfcal.boutnoise.BoutNoise.whitener`) with the base
+    columns projected out, for the F test of every candidate (:meth:`f`)."""
+
+    def __init__(self, whiten, r: np.ndarray, x: np.ndarray):
+        self.whiten = whiten
+        w = whiten(np.column_stack([r, x]))
+        self.qx = _orth(w[:, 1:])
+        self.e = w[:, 0] - self.qx @ (self.qx.T @ w[:, 0])
+
+    def f(self, c: np.ndarray) -> tuple[float, int]:
+        """Score F statistic of adding the columns ``c`` (n, k), g: the generalised-least-
+        squares test, linearised at the fit that gave ``r``. Returns ``(F, residual dof)``;
+        F is free of the noise level (the residual variance after both is its denominator)."""
+        ct = self.whiten(c)
+        qc = _orth(ct - self.qx @ (self.qx.T @ ct))
+        t = float(np.sum((qc.T @ self.e) ** 2))
+        dof = max(len(self.e) - self.qx.shape[1] - qc.shape[1], 1)
+        k = max(qc.shape[1], 1)
+        rss = max(float(self.e @ self.e) - t, 1e-300)
+        return (t / k) / (rss / dof), dof
 
 
 def _whitened_projection(fit, data: _Data):
@@ -553,10 +558,10 @@ def diagnose_poses(
     chi2_base = float(np.sum((base_fit.residuals_g / base_fit.sigma_g) ** 2))
     sigma, q = _whitened_projection(base_fit, data)
     level = cfg.alpha / len(CANDIDATES)
-    whiten = None
+    gls = None  # the residuals and the base model's columns, whitened once for every candidate
     if cfg.correlated_test == "gls" and noise_model is not None and noise_model.correlated_var_g2 > 0:
-        whiten = noise_model.whitener(bouts, noise**2 + noise_model.sigma_white_g**2)
-        jac_base = base.residual_jac(base_fit.theta_u, data.u, data.temp_c, data.t_s)[1]
+        gls = _GlsBase(noise_model.whitener(bouts, noise**2 + noise_model.sigma_white_g**2), base_fit.residuals_g,
+                       base.residual_jac(base_fit.theta_u, data.u, data.temp_c, data.t_s)[1])
     candidates = []
     for eff in CANDIDATES:
         entry: dict[str, Any] = {"name": eff, "selected": False, "evidence": "", "estimate": None}
@@ -587,13 +592,13 @@ def diagnose_poses(
         deff = _design_effect(covs, ext.index(eff), ext_fit.theta_u[ext.index(eff)])
         std_factor = _std_factor(covs, ext.n_params)
         fstat = f_indep / deff
-        if whiten is not None:
+        if gls is not None:
             # generalised least squares: the effect's columns against the base model's, each
             # bout whitened by its covariance (the changes within a bout carry the evidence
             # that its shared error hides); the design effect is then what it over-counted
             jac_eff = ext.residual_jac(ext.extend_theta(base_fit.theta_u, base), data.u, data.temp_c,
                                        data.t_s)[1][:, ext.index(eff)]
-            fstat, dof = _gls_f(whiten, base_fit.residuals_g, jac_base, jac_eff)
+            fstat, dof = gls.f(jac_eff)
             deff = f_indep / fstat if fstat > 0 else float("inf")
         pval = min(1.0, looks * float(stats.f.sf(fstat, 3, dof)))
         scores = _split_scores(ext, data, cfg, fit_cfg, ext_fit.theta_u, bouts)
@@ -632,7 +637,7 @@ def diagnose_poses(
         if eff == "bias_step" and passes:
             _refine_step(entry, base_fit, data, sigma, q, times, fit_cfg, unit, factor)
         deff_note = "" if deff == 1.0 else f"; design effect {deff:.1f} under the bout noise, F={f_indep:.1f} if independent"
-        if whiten is not None:
+        if gls is not None:
             deff_note = f"; generalised least squares under the bout noise, F={f_indep:.1f} if independent"
         entry["evidence"] = (
             f"F={fstat:.1f} (p={pval:.2g}, 3 extra parameters{deff_note}); held-out RMS {base_scores['time']:.3f} -> "

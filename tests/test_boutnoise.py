@@ -145,14 +145,14 @@ def test_projection_deltas_match_the_dense_traces():
 
 
 def test_gls_f_is_the_dense_generalised_least_squares_f():
-    from selfcal.diagnosis import _gls_f
+    from selfcal.diagnosis import _GlsBase
 
     t, g, bouts, model, indep, dense, rng = _dense_case(5)
     n = len(t)
     x = np.column_stack([np.ones(n), g[:, 2], t / t.max()])
     c = np.column_stack([np.sin(t / 40.0), g[:, 0] * t / t.max()])
     r = np.linalg.cholesky(dense) @ rng.standard_normal(n) + 1e-3 * c[:, 0]
-    f, dof = _gls_f(model.whitener(bouts, indep), r, x, c)
+    f, dof = _GlsBase(model.whitener(bouts, indep), r, x).f(c)
     # the textbook form: whiten with the dense Cholesky factor, compare the two least-squares fits
     w = np.linalg.inv(np.linalg.cholesky(dense))
 
