@@ -89,6 +89,11 @@ _BODY_ERRORS = {
     413: {"model": ErrorOut, "description": "body larger than max_body_bytes"},
     415: {"model": ErrorOut, "description": "unsupported Content-Type"},
 }
+_INGEST_ERRORS = {
+    **_BODY_ERRORS,
+    409: {"model": ErrorOut, "description": "the seq is stored with other content (a resend must be identical)"},
+    503: {"model": ErrorOut, "description": "nothing was stored (storage unavailable or busy); retry later"},
+}
 
 
 #: GET /fleet bodies from this size are gzipped for a client that accepts it.
@@ -567,7 +572,7 @@ def create_app(
     @app.post(
         "/devices/{device_id}/samples",
         response_model=BatchAck,
-        responses=_BODY_ERRORS,
+        responses=_INGEST_ERRORS,
         dependencies=[need("ingest")],
         openapi_extra=batch_request_openapi(settings.max_batch_samples),
         summary="ingest one batch of samples (acknowledged after a durable commit)",
