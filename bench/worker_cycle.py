@@ -3,12 +3,17 @@
 ``D`` devices each get ``K`` batches of ``B`` samples of simulated 20 Hz insole wear
 (stored as the API stores them), then the worker (``selfcal_service.main.make_worker``,
 the real calibrator) feeds them one batch a cycle, device after device, as a worker that
-keeps up does. Printed: ms a cycle and samples/s, and the share of the cycle spent in the
-calibrator's feed, in serialising its state, and in the database commit. A refit tier's
+keeps up does. Printed: ms a cycle and samples/s, the share of the cycle spent in the
+calibrator's feed, in serialising its state, and in the database commit, the state
+written per cycle, and what a fresh worker's restore of a device costs (its checkpoint,
+then the batches fed since, again). ``--worn-days`` starts every device from the state of
+an insole worn that long (a fleet at steady state); ``--checkpoint-samples`` runs the
+settings given, paired. A refit tier's
 samples/s per core is at most this figure (loopback PostgreSQL and the API's load come on
 top).
 
     python bench/worker_cycle.py [--devices 50] [--batches 20] [--batch-samples 400]
+                                 [--worn-days 7] [--checkpoint-samples 0,12000]
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # pg_cluster
 
 
 def main(argv=None) -> int:
@@ -30,6 +36,12 @@ def main(argv=None) -> int:
     ap.add_argument("--devices", type=int, default=50)
     ap.add_argument("--batches", type=int, default=20, help="batches per device (one cycle each)")
     ap.add_argument("--batch-samples", type=int, default=400, help="samples per batch (400 = 20 s at 20 Hz)")
+    ap.add_argument("--worn-days", type=float, default=0.0,
+                    help="start every device from the state of an insole worn this long (0: empty)")
+    ap.add_argument("--checkpoint-samples", default="0,12000",
+                    help="comma-separated [service] checkpoint_samples to run, paired (0: the state every cycle)")
+    ap.add_argument("--backends", default="sqlite",
+                    help="comma-separated: sqlite, postgresql (a throw-away loopback cluster, tests/pg_cluster.py)")
     ap.add_argument("--seed", type=int, default=2)
     args = ap.parse_args(argv)
 
@@ -37,33 +49,76 @@ def main(argv=None) -> int:
     from selfcal.config import load_config, section
     from selfcal.sim.config import SimConfig
     from selfcal.sim.simulator import Simulation
-    from selfcal_service.main import make_worker, open_store
-    from selfcal_service.metrics import Metrics
-    from selfcal_service.schemas import Batch
-    from selfcal_service.settings import load_settings
-    from selfcal_service.worker import CalibratorFactory
 
     cfg = load_config()
     n = args.batches * args.batch_samples
     sim = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(args.seed),
-                     days=n / 20.0 / 86400 * 1.1)
+                     days=args.worn_days + n / 20.0 / 86400 * 1.1)
     ch = sim.samples()
-    if len(ch.t_s) < n:
-        raise SystemExit(f"the simulation gave {len(ch.t_s)} samples, {n} needed")
+    i0 = int(np.searchsorted(ch.t_s, args.worn_days * 86400.0))
+    if len(ch.t_s) < i0 + n:
+        raise SystemExit(f"the simulation gave {len(ch.t_s) - i0} samples after the wear, {n} needed")
+    worn = None
+    if i0 > 0:  # one insole's state after the wear, given to every device as its checkpoint
+        cal = OnlineCalibrator(config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
+        for a in range(0, i0, 1_000_000):
+            b = min(i0, a + 1_000_000)
+            cal.feed_samples(ch.t_s[a:b], ch.acc_g[a:b], temp_c=ch.temp_c[a:b], pressure_kpa=ch.pressure_kpa[a:b])
+        feed = {"t_offset_s": 0.0, "last_t_s": float(ch.t_s[i0 - 1]), "first_t_s": float(ch.t_s[0]),
+                "first_seq": 0, "samples": i0}
+        worn = (cal.to_json(), feed)
+        print(f"worn {args.worn_days:g} days: {len(cal.store)} pose cells, state {len(worn[0]) / 1024:,.0f} KiB")
+    modes = [int(x) for x in args.checkpoint_samples.split(",")]
+    pg = None
+    try:
+        for backend in args.backends.split(","):
+            if backend == "postgresql" and pg is None:
+                from pg_cluster import PgCluster, unavailable
+
+                why = unavailable()
+                if why:
+                    raise SystemExit(f"PostgreSQL unavailable: {why}")
+                pg = PgCluster().start()
+            for i, every in enumerate(modes):
+                db = pg.create_database(f"cycle_{i}") if backend == "postgresql" else None
+                run(cfg, ch, i0, args, every, worn, backend, db)
+    finally:
+        if pg is not None:
+            pg.stop()
+    return 0
+
+
+def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db: str | None) -> None:
+    from selfcal.calibrator import OnlineCalibrator
+    from selfcal.config import section
+    from selfcal_service.main import make_worker, open_store
+    from selfcal_service.metrics import Metrics
+    from selfcal_service.schemas import Batch
+    from selfcal_service.settings import load_settings
+    from selfcal_service.storage import Progress
+    from selfcal_service.worker import CalibratorFactory
+
     timers = {"feed": 0.0, "to_json": 0.0}
+    written = [0]
     feed0, json0 = OnlineCalibrator.feed_samples, OnlineCalibrator.to_json
 
     def timed(name, fn):
-        def run(*a, **k):
+        def run_(*a, **k):
             t0 = time.perf_counter()
             try:
                 return fn(*a, **k)
             finally:
                 timers[name] += time.perf_counter() - t0
-        return run
+        return run_
+
+    def to_json(self):
+        out = timed("to_json", json0)(self)
+        written[0] += len(out)
+        return out
 
     with tempfile.TemporaryDirectory() as tmp:
-        settings = load_settings(section(cfg, "service"), overrides={"db_path": f"{tmp}/cycle.db"}, environ={})
+        settings = load_settings(section(cfg, "service"), environ={},
+                                 overrides={"db_path": db or f"{tmp}/cycle.db", "checkpoint_samples": checkpoint_samples})
         store = open_store(settings)
         store.open()
         try:
@@ -71,30 +126,49 @@ def main(argv=None) -> int:
                                         config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
             worker = make_worker(store, factory, Metrics(), settings)
             worker.max_batches = 1  # one batch a cycle: a worker that keeps up
+            worker.lease = None  # the only worker: no leases to take (PostgreSQL)
             for d in range(args.devices):
                 for k in range(args.batches):
-                    sl = slice(k * args.batch_samples, (k + 1) * args.batch_samples)
+                    sl = slice(i0 + k * args.batch_samples, i0 + (k + 1) * args.batch_samples)
                     payload = Batch(seq=k, t_s=ch.t_s[sl], acc_g=ch.acc_g[sl], temp_c=ch.temp_c[sl],
                                     pressure_kpa=ch.pressure_kpa[sl]).to_bytes()
                     store.submit_batch(f"dev{d:04d}", k, args.batch_samples, payload, time.time(),
                                        hashlib.sha256(payload).digest(), 10**6).result()
+                if worn is not None:  # the worn state, as a cycle that fed the wear would have written it
+                    store.commit_progress(Progress(
+                        device_id=f"dev{d:04d}", expected_processed_seq=None, processed_seq=None, samples_added=0,
+                        calibrator_state=worn[0], calibrator_status="calibrated", last_refit=None,
+                        feed_state=worn[1])).result()
             OnlineCalibrator.feed_samples = timed("feed", feed0)
-            OnlineCalibrator.to_json = timed("to_json", json0)
+            OnlineCalibrator.to_json = to_json
+            for d in range(args.devices):  # every device's calibrator restored (not timed)
+                worker._calibrator(store.load_device(f"dev{d:04d}", with_state=False))
+            timers.update(feed=0.0, to_json=0.0)
+            written[0] = 0
             t0 = time.perf_counter()
             for _ in range(args.batches):
                 for d in range(args.devices):
                     worker.process(f"dev{d:04d}")
             wall = time.perf_counter() - t0
+            assert worker.replays == 0, "a worker that keeps its calibrators never replays"
+            # what a takeover costs: a fresh worker restores every device (checkpoint + replay)
+            fresh = make_worker(store, factory, Metrics(), settings)
+            fresh.lease = None
+            t1 = time.perf_counter()
+            for d in range(args.devices):
+                fresh._calibrator(store.load_device(f"dev{d:04d}", with_state=False))
+            restore = (time.perf_counter() - t1) / args.devices
+            replayed = fresh.metrics.get("selfcal_worker_replayed_samples_total") / args.devices
         finally:
             OnlineCalibrator.feed_samples, OnlineCalibrator.to_json = feed0, json0
             store.close()
     cycles = args.devices * args.batches
     rest = wall - timers["feed"] - timers["to_json"]
-    print(f"{cycles} cycles of {args.batch_samples} samples in {wall:.2f} s: {wall / cycles * 1e3:.2f} ms a cycle, "
-          f"{cycles * args.batch_samples / wall:,.0f} samples/s; calibrator feed {timers['feed'] / cycles * 1e3:.2f} ms, "
-          f"state to JSON {timers['to_json'] / cycles * 1e3:.2f} ms, the rest (database, decoding, bookkeeping) "
-          f"{rest / cycles * 1e3:.2f} ms")
-    return 0
+    print(f"{backend}, checkpoint_samples {checkpoint_samples}: {cycles} cycles of {args.batch_samples} samples in {wall:.2f} s: "
+          f"{wall / cycles * 1e3:.2f} ms a cycle, {cycles * args.batch_samples / wall:,.0f} samples/s; calibrator feed "
+          f"{timers['feed'] / cycles * 1e3:.2f} ms, state to JSON {timers['to_json'] / cycles * 1e3:.2f} ms, the rest "
+          f"(database, decoding, bookkeeping) {rest / cycles * 1e3:.2f} ms; state written {written[0] / cycles / 1024:,.1f} "
+          f"KiB a cycle; a restore {restore * 1e3:.1f} ms (replaying {replayed:,.0f} samples)")
 
 
 if __name__ == "__main__":

@@ -343,7 +343,8 @@ def make_worker(store: Storage, factory: CalibratorFactory, metrics: Metrics, se
 
     lease = None
     if isinstance(store, PostgresStore):
-        lease = LeaseConfig(owner=worker_owner_id(), ttl_s=settings.lease_ttl_s, poll_s=settings.lease_poll_s)
+        lease = LeaseConfig(owner=worker_owner_id(), ttl_s=settings.lease_ttl_s, poll_s=settings.lease_poll_s,
+                            idle_s=settings.lease_idle_s, max_devices=settings.lease_max_devices)
         metrics.gauge("selfcal_worker_leases", lambda: len(worker._leased))
     worker = RefitWorker(
         store,
@@ -354,6 +355,7 @@ def make_worker(store: Storage, factory: CalibratorFactory, metrics: Metrics, se
         time_reset_gap_s=settings.time_reset_gap_s,
         reorder_window_s=settings.reorder_window_s,
         min_cycle_interval_s=settings.min_cycle_interval_s,
+        checkpoint_samples=settings.checkpoint_samples,
         lease=lease,
     )
     return worker

@@ -46,6 +46,7 @@ from selfcal_service.storage import (
     VersionRecord,
     RefusalRecord,
     device_from_row,
+    with_checkpoint,
     dumps_json,
     fleet_from_row,
     fleet_select,
@@ -55,7 +56,7 @@ from selfcal_service.storage import (
 
 log = logging.getLogger("selfcal.service.postgres")
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 _SCHEMA_LOCK = 815_372_001  # pg_advisory_lock key while the schema is created or migrated
 
 _REFUSALS_SCHEMA = [
@@ -120,6 +121,23 @@ _INGEST_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_ingest(
     END
     $fn$"""
 
+# the calibrator state in its own table, written every checkpoint_samples rather than every
+# cycle (devices.calibrator_state stays, always NULL since v4)
+_CHECKPOINTS_SCHEMA = """CREATE TABLE IF NOT EXISTS checkpoints (
+        device_id  TEXT PRIMARY KEY,
+        seq        BIGINT,
+        state      TEXT NOT NULL,
+        feed_state TEXT NOT NULL,
+        written_at DOUBLE PRECISION NOT NULL
+    )"""
+
+# live refit workers (a heartbeat with the lease renewal): each holds about its share of
+# the fleet's active devices
+_WORKERS_SCHEMA = [
+    "CREATE TABLE IF NOT EXISTS workers (owner TEXT PRIMARY KEY, seen_at DOUBLE PRECISION NOT NULL)",
+    "CREATE INDEX IF NOT EXISTS devices_leased ON devices (lease_owner) WHERE lease_owner IS NOT NULL",
+]
+
 _SCHEMA = [
     "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
     """CREATE TABLE IF NOT EXISTS devices (
@@ -165,17 +183,31 @@ _SCHEMA = [
     )""",
     *_REFUSALS_SCHEMA,
     _INGEST_FUNCTION,
+    _CHECKPOINTS_SCHEMA,
+    *_WORKERS_SCHEMA,
 ]
 
 #: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
 MIGRATIONS: dict[int, list[str]] = {
     1: list(_REFUSALS_SCHEMA),  # v2: the refusal log of the dashboard (starts empty)
     2: [_INGEST_FUNCTION],  # v3: an ingest in one round trip
+    3: [  # v4: checkpoints, the worker registry
+        _CHECKPOINTS_SCHEMA,
+        *_WORKERS_SCHEMA,
+        "INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) SELECT device_id, processed_seq, "
+        "calibrator_state, COALESCE(feed_state, '{}'), COALESCE(updated_at, created_at) FROM devices "
+        "WHERE calibrator_state IS NOT NULL",
+        "UPDATE devices SET calibrator_state = NULL WHERE calibrator_state IS NOT NULL",
+    ],
 }
 
 _COLS = [*DEVICE_COLUMNS, "state_rev"]
 _DEVICE_COLS = ", ".join(f"d.{c}" for c in _COLS)
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in _COLS)  # no state
+# what the worker loads: the state comes from the checkpoint (devices.calibrator_state is unused since v4)
+_LOAD_COLS_STATE = ", ".join("c.state" if c == "calibrator_state" else f"d.{c}" for c in _COLS)
+_CKPT_SQL = ", c.device_id IS NOT NULL, c.seq, c.feed_state FROM devices d LEFT JOIN checkpoints c " \
+            "ON c.device_id = d.device_id WHERE d.device_id = %s"
 _N = len(_COLS)
 
 _NOW = "extract(epoch from clock_timestamp())"
@@ -358,9 +390,39 @@ class PostgresStore(GroupCommitStore):
     def pending_devices(self) -> list[str]:
         return [r[0] for r in self._read("SELECT DISTINCT device_id FROM batches WHERE state = 0 ORDER BY 1")]
 
-    def load_device(self, device_id: str) -> DeviceRecord | None:
-        rows = self._read(f"SELECT {_DEVICE_COLS} FROM devices d WHERE d.device_id = %s", (device_id,))
-        return device_from_row(rows[0]) if rows else None
+    def load_device(self, device_id: str, with_state: bool = True) -> DeviceRecord | None:
+        cols = _LOAD_COLS_STATE if with_state else _DEVICE_READ_COLS
+        rows = self._read(f"SELECT {cols}{_CKPT_SQL}", (device_id,))
+        return with_checkpoint(device_from_row(rows[0][:_N]), rows[0][_N:]) if rows else None
+
+    def fed_batches(self, device_id: str, after_seq: int | None, upto_seq: int | None,
+                    limit: int) -> list[PendingBatch]:
+        rows = self._read(
+            "SELECT seq, n_samples, received_at, payload FROM batches WHERE device_id = %s AND state = 1 "
+            "AND seq > %s AND seq <= %s ORDER BY seq LIMIT %s",
+            (device_id, -1 if after_seq is None else after_seq, -1 if upto_seq is None else upto_seq, limit))
+        return [PendingBatch(r[0], r[1], r[2], bytes(r[3])) for r in rows]
+
+    def write_checkpoint(self, device_id: str, seq: int | None, state: str, feed_state: dict[str, Any]) -> bool:
+        def op(conn: Any) -> bool:
+            row = conn.execute("SELECT processed_seq FROM devices WHERE device_id = %s FOR UPDATE",
+                               (device_id,)).fetchone()
+            if row is None or row[0] != seq:
+                return False
+            self._upsert_checkpoint(conn, device_id, seq, state, feed_state, time.time())
+            return True
+
+        op.device_id = device_id  # type: ignore[attr-defined]
+        return self._submit(op).result()
+
+    @staticmethod
+    def _upsert_checkpoint(conn: Any, device_id: str, seq: int | None, state: str,
+                           feed_state: dict[str, Any], now: float) -> None:
+        conn.execute(
+            "INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) VALUES (%s, %s, %s, %s, %s) "
+            "ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state, "
+            "feed_state = excluded.feed_state, written_at = excluded.written_at",
+            (device_id, seq, state, dumps_json(feed_state), now))
 
     def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:
         rows = self._read(
@@ -395,12 +457,14 @@ class PostgresStore(GroupCommitStore):
                 numbers.append(number)
             conn.execute(
                 "UPDATE devices SET processed_seq = %s, samples_processed = samples_processed + %s, "
-                "calibrator_state = %s, calibrator_status = %s, last_refit = %s, feed_state = %s, "
+                "calibrator_status = %s, last_refit = %s, feed_state = %s, "
                 "current_version = COALESCE(%s, current_version), updated_at = %s, state_rev = state_rev + 1 "
                 "WHERE device_id = %s",
-                (p.processed_seq, p.samples_added, p.calibrator_state, p.calibrator_status,
+                (p.processed_seq, p.samples_added, p.calibrator_status,
                  None if p.last_refit is None else dumps_json(p.last_refit), dumps_json(p.feed_state),
                  numbers[-1] if numbers else None, now, p.device_id))
+            if p.calibrator_state is not None:
+                self._upsert_checkpoint(conn, p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now)
             if p.fed_seqs:
                 conn.execute("UPDATE batches SET state = 1 WHERE device_id = %s AND seq = ANY(%s) AND state = 0",
                              (p.device_id, list(p.fed_seqs)))
@@ -457,6 +521,29 @@ class PostgresStore(GroupCommitStore):
             f" UPDATE devices SET lease_until = {_NOW} + %(ttl)s FROM c"
             " WHERE devices.device_id = c.device_id RETURNING 1", {"me": owner, "ttl": ttl_s})
         return len(rows)
+
+    def leased_with_pending(self, owner: str) -> list[str]:
+        """Devices ``owner`` holds that have pending batches (ingested by other processes)."""
+        rows = self._read("SELECT DISTINCT b.device_id FROM batches b JOIN devices d ON d.device_id = b.device_id "
+                          "WHERE b.state = 0 AND d.lease_owner = %s", (owner,))
+        return [r[0] for r in rows]
+
+    def heartbeat(self, owner: str, ttl_s: float) -> tuple[int, int]:
+        """Record ``owner`` as live; return (live workers, active devices: leased now or
+        with pending batches). Workers not seen for ten lease times are deleted."""
+        self._read(f"INSERT INTO workers(owner, seen_at) VALUES (%(me)s, {_NOW}) ON CONFLICT (owner) DO UPDATE "
+                   "SET seen_at = excluded.seen_at RETURNING 1", {"me": owner})
+        self._read(f"DELETE FROM workers WHERE seen_at < {_NOW} - %(old)s RETURNING 1", {"old": 10 * ttl_s})
+        rows = self._read(
+            f"SELECT (SELECT COUNT(*) FROM workers WHERE seen_at >= {_NOW} - %(ttl)s),"
+            f" (SELECT COUNT(*) FROM devices WHERE lease_owner IS NOT NULL AND lease_until >= {_NOW})"
+            " + (SELECT COUNT(DISTINCT b.device_id) FROM batches b JOIN devices d ON d.device_id = b.device_id"
+            f" WHERE b.state = 0 AND (d.lease_owner IS NULL OR d.lease_until < {_NOW}))", {"ttl": ttl_s})
+        return int(rows[0][0]), int(rows[0][1])
+
+    def forget_worker(self, owner: str) -> None:
+        """``owner`` stops (its share goes to the others at once)."""
+        self._read("DELETE FROM workers WHERE owner = %s RETURNING 1", (owner,))
 
     def release_lease(self, owner: str, device_id: str) -> None:
         """Give a device's lease up (it had nothing left to feed)."""

@@ -53,6 +53,12 @@ class Settings(BaseModel):
                     "writes the device's whole calibrator state, so a fleet at steady state wants 60-300 s "
                     "(bench/state_size.py); a device with a backlog is not held",
     )
+    checkpoint_samples: int = Field(
+        12_000, ge=0, le=10_000_000,
+        description="a device's whole calibrator state (up to ~1.5 MB after a week) is written once this many samples "
+                    "were fed since it was last written (0: every cycle); a restore (restart, lease takeover) feeds "
+                    "the stored batches since then again. 12 000 = 10 min of a 20-Hz insole",
+    )
     reorder_window_s: float = Field(
         10.0, ge=0, le=3600,
         description="a batch whose predecessor seq is missing waits this long for it before being fed",
@@ -73,6 +79,16 @@ class Settings(BaseModel):
         10.0, gt=0.5, le=600, description="PostgreSQL: a refit worker's lease on a device lasts this long unless renewed"
     )
     lease_poll_s: float = Field(0.25, gt=0, le=60, description="PostgreSQL: how often a worker looks for work")
+    lease_max_devices: int = Field(
+        256, ge=1, le=1_000_000,
+        description="PostgreSQL: devices a refit worker leases at once; each keeps its calibrator in memory "
+                    "(~1.5 MB after a week of wear)",
+    )
+    lease_idle_s: float = Field(
+        60.0, ge=0, le=3600,
+        description="PostgreSQL: a worker keeps the lease (and the cached calibrator) of a device that was fed "
+                    "everything it had this long for its next batch, unless it needs the room; 0: gives it up at once",
+    )
     calibrator: str = Field(
         "selfcal.calibrator:OnlineCalibrator",
         description="import path module:Class of the calibrator (tests inject a fake)",

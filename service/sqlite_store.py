@@ -22,6 +22,7 @@ import threading
 import time
 from concurrent.futures import Future
 from pathlib import Path
+from typing import Any
 
 from selfcal_service.group_commit import GroupCommitStore
 from selfcal_service.storage import (
@@ -41,6 +42,7 @@ from selfcal_service.storage import (
     VersionRecord,
     RefusalRecord,
     device_from_row,
+    with_checkpoint,
     dumps_json,
     fleet_from_row,
     fleet_select,
@@ -50,7 +52,7 @@ from selfcal_service.storage import (
 
 log = logging.getLogger("selfcal.service.sqlite")
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
@@ -106,6 +108,13 @@ CREATE TABLE IF NOT EXISTS refusals (
     seq       INTEGER
 );
 CREATE INDEX IF NOT EXISTS refusals_device ON refusals (device_id, id);
+CREATE TABLE IF NOT EXISTS checkpoints (
+    device_id  TEXT PRIMARY KEY,
+    seq        INTEGER,
+    state      TEXT NOT NULL,
+    feed_state TEXT NOT NULL,
+    written_at REAL NOT NULL
+);
 """
 
 #: Batch states: pending, fed to the calibrator once, rejected with a reason.
@@ -136,6 +145,17 @@ MIGRATIONS = {
         "kind TEXT NOT NULL, reason TEXT, message TEXT, t_s REAL, seq INTEGER)",
         "CREATE INDEX IF NOT EXISTS refusals_device ON refusals (device_id, id)",
     ],
+    # v4: the calibrator state moves to its own table, written every checkpoint_samples
+    # rather than every cycle (devices.calibrator_state stays, always NULL: a row update
+    # would rewrite the megabyte of state with it)
+    3: [
+        "CREATE TABLE IF NOT EXISTS checkpoints (device_id TEXT PRIMARY KEY, seq INTEGER, state TEXT NOT NULL, "
+        "feed_state TEXT NOT NULL, written_at REAL NOT NULL)",
+        "INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) SELECT device_id, processed_seq, "
+        "calibrator_state, COALESCE(feed_state, '{}'), COALESCE(updated_at, created_at) FROM devices "
+        "WHERE calibrator_state IS NOT NULL",
+        "UPDATE devices SET calibrator_state = NULL",
+    ],
 }
 
 _DEVICE_COLS = ", ".join(DEVICE_COLUMNS)
@@ -143,6 +163,9 @@ _N_DEVICE_COLS = len(DEVICE_COLUMNS)
 # what the read routes select: every device column but the calibrator state, which can be
 # a megabyte for a device worn for weeks (thousands of pose cells) and no read needs
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in DEVICE_COLUMNS)
+# what the worker loads: the state comes from the checkpoint (devices.calibrator_state is unused since v4)
+_LOAD_COLS = _DEVICE_READ_COLS
+_LOAD_COLS_STATE = ", ".join("c.state" if c == "calibrator_state" else f"d.{c}" for c in DEVICE_COLUMNS)
 # the dashboard's page of devices: JSON1's json_extract reads the served calibration's figures
 _FLEET_SQL = fleet_select(lambda key: f"json_extract(v.calibration, '$.{key}')",
                           lambda key: f"json_extract(v.calibration, '$.{key}')")
@@ -290,11 +313,41 @@ class SQLiteStore(GroupCommitStore):
         ).fetchall()
         return [r[0] for r in rows]
 
-    def load_device(self, device_id: str) -> DeviceRecord | None:
+    def load_device(self, device_id: str, with_state: bool = True) -> DeviceRecord | None:
         row = self._reader().execute(
-            f"SELECT {_DEVICE_COLS} FROM devices WHERE device_id = ?", (device_id,)
+            f"SELECT {_LOAD_COLS_STATE if with_state else _LOAD_COLS}, c.device_id IS NOT NULL, c.seq, c.feed_state "
+            "FROM devices d LEFT JOIN checkpoints c ON c.device_id = d.device_id WHERE d.device_id = ?",
+            (device_id,),
         ).fetchone()
-        return device_from_row(row) if row else None
+        return with_checkpoint(device_from_row(row[:_N_DEVICE_COLS]), row[_N_DEVICE_COLS:]) if row else None
+
+    def fed_batches(self, device_id: str, after_seq: int | None, upto_seq: int | None,
+                    limit: int) -> list[PendingBatch]:
+        rows = self._reader().execute(
+            "SELECT seq, n_samples, received_at, payload FROM batches WHERE device_id = ? AND state = 1 "
+            "AND seq > ? AND seq <= ? ORDER BY seq LIMIT ?",
+            (device_id, -1 if after_seq is None else after_seq, -1 if upto_seq is None else upto_seq, limit),
+        ).fetchall()
+        return [PendingBatch(*r) for r in rows]
+
+    def write_checkpoint(self, device_id: str, seq: int | None, state: str, feed_state: dict[str, Any]) -> bool:
+        def op(conn: sqlite3.Connection) -> bool:
+            row = conn.execute("SELECT processed_seq FROM devices WHERE device_id = ?", (device_id,)).fetchone()
+            if row is None or row[0] != seq:
+                return False
+            self._upsert_checkpoint(conn, device_id, seq, state, feed_state, time.time())
+            return True
+
+        return self._submit(op).result()
+
+    @staticmethod
+    def _upsert_checkpoint(conn: sqlite3.Connection, device_id: str, seq: int | None, state: str,
+                           feed_state: dict[str, Any], now: float) -> None:
+        conn.execute(
+            "INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) VALUES (?, ?, ?, ?, ?) "
+            "ON CONFLICT(device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state, "
+            "feed_state = excluded.feed_state, written_at = excluded.written_at",
+            (device_id, seq, state, dumps_json(feed_state), now))
 
     def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:
         rows = self._reader().execute(
@@ -323,13 +376,12 @@ class SQLiteStore(GroupCommitStore):
             numbers = [self._insert_version(conn, p.device_id, v, now) for v in p.new_versions]
             cur = conn.execute(
                 "UPDATE devices SET processed_seq = ?, samples_processed = samples_processed + ?, "
-                "calibrator_state = ?, calibrator_status = ?, last_refit = ?, feed_state = ?, "
+                "calibrator_status = ?, last_refit = ?, feed_state = ?, "
                 "current_version = COALESCE(?, current_version), updated_at = ? "
                 "WHERE device_id = ? AND processed_seq IS ?",
                 (
                     p.processed_seq,
                     p.samples_added,
-                    p.calibrator_state,
                     p.calibrator_status,
                     None if p.last_refit is None else dumps_json(p.last_refit),
                     dumps_json(p.feed_state),
@@ -341,6 +393,8 @@ class SQLiteStore(GroupCommitStore):
             )
             if cur.rowcount != 1:
                 raise ConflictError(f"device {p.device_id}: processed_seq changed under the worker")
+            if p.calibrator_state is not None:
+                self._upsert_checkpoint(conn, p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now)
             if p.fed_seqs:
                 conn.executemany(
                     "UPDATE batches SET state = 1 WHERE device_id = ? AND seq = ? AND state = 0",

@@ -69,6 +69,16 @@ class PendingBatch:
     payload: bytes
 
 
+@dataclass(frozen=True)
+class Checkpoint:
+    """The last written calibrator state of a device: the state after feeding every fed
+    batch up to ``seq`` (None: before any), and the feed bookkeeping at that point. A
+    worker restores it and feeds the stored batches after ``seq`` again (replay)."""
+
+    seq: int | None
+    feed_state: dict[str, Any]
+
+
 @dataclass
 class DeviceRecord:
     device_id: str
@@ -85,6 +95,9 @@ class DeviceRecord:
     rejected_samples: int = 0
     last_rejection: dict[str, Any] | None = None
     state_rev: int | None = None  # bumped by every commit_progress (PostgreSQL; None on SQLite)
+    # where ``calibrator_state`` stands (None: no checkpoint, a fresh calibrator). The state
+    # text itself is read only by ``load_device(..., with_state=True)``.
+    checkpoint: Checkpoint | None = None
 
 
 @dataclass
@@ -127,6 +140,9 @@ class Progress:
     expected_processed_seq: int | None
     processed_seq: int | None
     samples_added: int
+    # the calibrator state after this cycle, written as the device's checkpoint at
+    # ``processed_seq`` with ``feed_state``; None keeps the stored checkpoint (the batches
+    # fed since are replayed on restore)
     calibrator_state: str | None
     calibrator_status: str | None
     last_refit: dict[str, Any] | None
@@ -258,6 +274,14 @@ def device_from_row(row: tuple) -> DeviceRecord:
     )
 
 
+def with_checkpoint(rec: DeviceRecord, cols: tuple) -> DeviceRecord:
+    """``rec`` with its checkpoint from the columns (exists, seq, feed_state JSON)."""
+    exists, seq, feed = cols
+    if exists:
+        rec.checkpoint = Checkpoint(seq=seq, feed_state=json.loads(feed) if feed else {})
+    return rec
+
+
 def version_from_row(row: tuple) -> VersionRecord:
     """A :class:`VersionRecord` from a row in ``VERSION_COLUMNS`` order."""
     return VersionRecord(version=row[0], status=row[1], source=row[2], created_at=row[3],
@@ -299,7 +323,22 @@ class Storage(abc.ABC):
         """Devices with pending (neither fed nor rejected) batches, for restart."""
 
     @abc.abstractmethod
-    def load_device(self, device_id: str) -> DeviceRecord | None: ...
+    def load_device(self, device_id: str, with_state: bool = True) -> DeviceRecord | None:
+        """The device row with its checkpoint's position; the checkpoint's state text
+        (``calibrator_state``, up to megabytes) only ``with_state``."""
+
+    @abc.abstractmethod
+    def fed_batches(self, device_id: str, after_seq: int | None, upto_seq: int | None,
+                    limit: int) -> list[PendingBatch]:
+        """Batches fed to the calibrator with ``after_seq < seq <= upto_seq`` (None: no
+        bound below) in seq order, at most ``limit``: the replay after a checkpoint."""
+
+    @abc.abstractmethod
+    def write_checkpoint(self, device_id: str, seq: int | None, state: str,
+                         feed_state: dict[str, Any]) -> bool:
+        """Write a calibrator state as the device's checkpoint at ``seq`` if the device's
+        ``processed_seq`` is still ``seq`` (else nothing: a newer cycle was committed);
+        True if written. Durable on return."""
 
     @abc.abstractmethod
     def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:

@@ -136,13 +136,16 @@ class LeaseConfig:
     ``owner``: this worker's unique id; ``ttl_s``: a lease not renewed for this long is
     free for another worker (so a killed worker's devices move on within it);
     ``poll_s``: how often to look for devices with pending batches; ``max_devices``:
-    leases held at once.
+    leases held at once; ``idle_s``: a device fed everything it had stays leased (and its
+    calibrator cached) this long for its next batch, unless the room is needed (0: given
+    up at once). Its state is written as a checkpoint when the lease is given up.
     """
 
     owner: str
     ttl_s: float = 10.0
     poll_s: float = 0.25
     max_devices: int = 256
+    idle_s: float = 60.0
 
 
 def _shard(device_id: str, n: int) -> int:
@@ -170,6 +173,7 @@ class RefitWorker:
         time_reset_gap_s: float = 60.0,
         reorder_window_s: float = 10.0,
         min_cycle_interval_s: float = 0.0,
+        checkpoint_samples: int = 0,
         lease: "LeaseConfig | None" = None,
     ):
         self.store = store
@@ -189,6 +193,12 @@ class RefitWorker:
         # a device fed everything it had is fed again at most this often (monotonic s of its last cycle)
         self.min_cycle_interval_s = min_cycle_interval_s
         self._last_cycle: dict[str, float] = {}
+        # the calibrator state is written (a checkpoint) once this many samples were fed
+        # since the last one (0: every cycle); a restore replays the batches fed since
+        self.checkpoint_samples = checkpoint_samples
+        # devices whose cached calibrator is ahead of their checkpoint: (processed_seq, feed_state)
+        self._dirty: dict[str, tuple[int | None, dict[str, Any]]] = {}
+        self.replays = 0
         self.busy = 0  # devices being processed right now
         self.cycles = 0
         self.conflicts = 0  # cycles dropped because another writer changed the device
@@ -196,6 +206,9 @@ class RefitWorker:
         self._lease_cond = threading.Condition()
         self._lease_thread: threading.Thread | None = None
         self._leased: set[str] = set()
+        self._idle: dict[str, float] = {}  # leased devices fed everything they had: since (monotonic s)
+        # devices a worker should hold: the fleet's leased and waiting devices per live worker
+        self._share = lease.max_devices if lease is not None else 0
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -221,9 +234,14 @@ class RefitWorker:
                 shard.thread.join(timeout=60)
         if self._lease_thread is not None:
             self._lease_thread.join(timeout=30)
+        self.flush_checkpoints()  # a restart then restores without a replay
         if self.lease is not None:  # hand the devices over now rather than at lease expiry
             for device_id in list(self._leased):
-                self._release(device_id)
+                self._release(device_id, force=True)
+            try:
+                self.store.forget_worker(self.lease.owner)  # type: ignore[attr-defined]
+            except Exception as exc:  # noqa: BLE001 - it ages out
+                log.info("worker %s not unregistered (%s)", self.lease.owner, exc)
 
     def alive(self) -> int:
         return sum(1 for s in self._shards if s.thread is not None and s.thread.is_alive())
@@ -246,6 +264,7 @@ class RefitWorker:
         self._enqueue(device_id)
 
     def _enqueue(self, device_id: str) -> None:
+        self._idle.pop(device_id, None)
         shard = self._shards[_shard(device_id, len(self._shards))]
         with shard.cond:
             if device_id not in shard.pending:
@@ -277,46 +296,104 @@ class RefitWorker:
                 log.info("device %s: %s; cycle dropped", device_id, exc)
                 self.conflicts += 1
                 self.metrics.inc("selfcal_worker_conflicts_total")
-                self._cache.pop(device_id, None)
+                self._forget(device_id)
                 more = False
             except StorageUnavailable as exc:  # a storage fault: no traceback, wait it out
                 if backoff_s == 0.5:
                     log.warning("refits paused: %s", exc)
                 self.metrics.inc("selfcal_worker_errors_total")
-                self._cache.pop(device_id, None)
+                self._forget(device_id)
                 more = True
                 self._stop.wait(backoff_s)
                 backoff_s = min(5.0, 2 * backoff_s)
             except Exception:
                 log.exception("refit cycle failed for device %s", device_id)
                 self.metrics.inc("selfcal_worker_errors_total")
-                self._cache.pop(device_id, None)
+                self._forget(device_id)
                 more = True
                 self._stop.wait(0.5)  # back off, then retry from the persisted state
             finally:
                 with shard.cond:
                     self.busy -= 1
-            if more:
+            if self.lease is not None and len(self._leased) > min(self._share, self.lease.max_devices):
+                self._release(device_id, force=True)  # more than its share: another worker takes it next
+            elif more:
                 self._enqueue(device_id)
-            elif self.lease is not None:
+            elif self.lease is not None and device_id in self._leased:
                 with self._held_lock:
                     held = device_id in self._held
-                if not held:
-                    self._release(device_id)
+                if not held:  # kept for its next batch; the lease thread gives it up when idle
+                    self._idle[device_id] = time.monotonic()
+
+    def _forget(self, device_id: str) -> None:
+        """Drop the cached calibrator: the next cycle restores it from the store."""
+        self._cache.pop(device_id, None)
+        self._dirty.pop(device_id, None)
 
     def _calibrator(self, rec: DeviceRecord) -> Calibrator:
         cached = self._cache.get(rec.device_id)
         if cached is not None and cached[0] == (rec.processed_seq, rec.state_rev):
             return cached[1]
-        if rec.calibrator_state:
-            return self.factory.restore(rec.calibrator_state)
-        return self.factory.create()
+        cal = self._restore(rec)
+        # cached at once: a cycle that feeds it and then fails drops it (``_forget``)
+        self._cache[rec.device_id] = ((rec.processed_seq, rec.state_rev), cal)
+        return cal
 
     def _restore(self, rec: DeviceRecord) -> Calibrator:
-        self._cache.pop(rec.device_id, None)
-        if rec.calibrator_state:
-            return self.factory.restore(rec.calibrator_state)
-        return self.factory.create()
+        """The device's calibrator as of ``rec.processed_seq``: its checkpoint (or a fresh
+        one), then the batches fed after the checkpoint fed again in seq order. The
+        calibrator gives the same state however its samples are split into calls
+        (tests/test_calibrator.py), so the replay reproduces the state the last cycle
+        had; its refit events were published then and are dropped now."""
+        self._forget(rec.device_id)
+        full = self.store.load_device(rec.device_id, with_state=True)
+        if full is None or full.processed_seq != rec.processed_seq or full.state_rev != rec.state_rev:
+            raise ConflictError(f"device {rec.device_id}: changed while its calibrator was restored")
+        ckpt = full.checkpoint
+        cal = self.factory.restore(full.calibrator_state) if ckpt is not None and full.calibrator_state \
+            else self.factory.create()
+        if rec.processed_seq is None or (ckpt is not None and ckpt.seq == rec.processed_seq):
+            return cal  # nothing fed since the checkpoint
+        feed = dict(ckpt.feed_state) if ckpt is not None else {}
+        after = ckpt.seq if ckpt is not None else None
+        samples = 0
+        while True:
+            rows = self.store.fed_batches(rec.device_id, after, rec.processed_seq, self.max_batches)
+            if not rows:
+                break
+            _, n = self._feed(cal, [(r.seq, decode_binary(r.payload)) for r in rows], feed, rec, replay=True)
+            samples += n
+            after = rows[-1].seq
+        if feed.get("last_t_s") != rec.feed_state.get("last_t_s"):
+            log.warning("device %s: the replay ends at t = %s s, the last cycle at %s s", rec.device_id,
+                        feed.get("last_t_s"), rec.feed_state.get("last_t_s"))
+        self.replays += 1
+        self.metrics.inc("selfcal_worker_replays_total")
+        self.metrics.inc("selfcal_worker_replayed_samples_total", samples)
+        return cal
+
+    def _samples_since_checkpoint(self, rec: DeviceRecord, feed: dict[str, Any]) -> int:
+        base = rec.checkpoint.feed_state.get("samples", 0) if rec.checkpoint is not None else 0
+        return int(feed.get("samples", 0)) - int(base or 0)
+
+    def flush_checkpoints(self) -> int:
+        """Write the cached calibrators that are ahead of their checkpoint (at a stop, or
+        before a lease is given up); returns how many were written."""
+        written = 0
+        for device_id in list(self._dirty):
+            written += self._checkpoint_now(device_id)
+        return written
+
+    def _checkpoint_now(self, device_id: str) -> bool:
+        dirty = self._dirty.pop(device_id, None)
+        cached = self._cache.get(device_id)
+        if dirty is None or cached is None or cached[0][0] != dirty[0]:
+            return False
+        try:
+            return self.store.write_checkpoint(device_id, dirty[0], cached[1].to_json(), dirty[1])
+        except Exception as exc:  # noqa: BLE001 - the next restore replays instead
+            log.warning("device %s: checkpoint not written (%s); a restore replays", device_id, exc)
+            return False
 
     def _plan(self, rec: DeviceRecord, rows: list[PendingBatch], now: float):
         """Split pending batches into (to feed now in seq order, rejected late, held).
@@ -359,13 +436,15 @@ class RefitWorker:
 
     def _process(self, device_id: str) -> bool:
         with self.device_lock(device_id):
+            if self.lease is not None and device_id not in self._leased:
+                return False  # given up meanwhile (its share moved to another worker)
             if self.min_cycle_interval_s > 0:  # let batches gather: one state write for several
                 last = self._last_cycle.get(device_id)
                 wait = 0.0 if last is None else last + self.min_cycle_interval_s - time.monotonic()
                 if wait > 0:
                     self._hold(device_id, wait)
                     return False
-            rec = self.store.load_device(device_id)
+            rec = self.store.load_device(device_id, with_state=False)
             if rec is None:
                 return False
             rows = self.store.pending_batches(device_id, self.max_batches)
@@ -396,12 +475,14 @@ class RefitWorker:
                 feed["handled_seq"] = max(take[-1].seq, int(feed.get("handled_seq", -1)))
             versions = self._versions(cal, events, feed)
             last_refit = jsonable(getattr(cal, "last_refit", None))
+            checkpoint = self.checkpoint_samples <= 0 or \
+                self._samples_since_checkpoint(rec, feed) >= self.checkpoint_samples
             progress = Progress(
                 device_id=device_id,
                 expected_processed_seq=rec.processed_seq,
                 processed_seq=max(fed, default=rec.processed_seq),  # fed seqs are all above it
                 samples_added=samples,
-                calibrator_state=cal.to_json(),
+                calibrator_state=cal.to_json() if checkpoint else None,
                 calibrator_status=str(cal.status),
                 last_refit=last_refit,
                 feed_state=feed,
@@ -415,6 +496,11 @@ class RefitWorker:
             self.store.commit_progress(progress).result()  # durable before caching
             rev = None if rec.state_rev is None else rec.state_rev + 1
             self._cache[device_id] = ((progress.processed_seq, rev), cal)
+            if checkpoint:
+                self._dirty.pop(device_id, None)
+                self.metrics.inc("selfcal_worker_checkpoints_total")
+            else:
+                self._dirty[device_id] = (progress.processed_seq, feed)
             self.cycles += 1
             more = len(rows) >= self.max_batches
             if more:
@@ -450,7 +536,7 @@ class RefitWorker:
         timer.start()
 
     # ------------------------------------------------------------ feeding
-    def _prepare(self, batch: Batch, seq: int, feed: dict[str, Any]) -> np.ndarray:
+    def _prepare(self, batch: Batch, seq: int, feed: dict[str, Any], count: bool = True) -> np.ndarray:
         """Device time -> fed time: a clock going backwards (reboot) adds a gap, never a reversal."""
         offset = float(feed.get("t_offset_s", 0.0))
         last = feed.get("last_t_s")
@@ -459,7 +545,8 @@ class RefitWorker:
             offset += (last - t[0]) + self.time_reset_gap_s
             t = batch.t_s + offset
             feed["clock_resets"] = int(feed.get("clock_resets", 0)) + 1
-            self.metrics.inc("selfcal_clock_resets_total")
+            if count:
+                self.metrics.inc("selfcal_clock_resets_total")
         feed["t_offset_s"] = offset
         return t
 
@@ -474,8 +561,10 @@ class RefitWorker:
             feed["temp_min_c"] = min(lo, feed.get("temp_min_c", lo))
             feed["temp_max_c"] = max(hi, feed.get("temp_max_c", hi))
 
-    def _feed(self, cal: Calibrator, batches: list[tuple[int, Batch]], feed: dict[str, Any], rec) -> tuple[list, int]:
-        """Feed runs of consecutive batches with the same columns in one call each."""
+    def _feed(self, cal: Calibrator, batches: list[tuple[int, Batch]], feed: dict[str, Any], rec,
+              replay: bool = False) -> tuple[list, int]:
+        """Feed runs of consecutive batches with the same columns in one call each
+        (``replay``: batches fed before, after a checkpoint; the clock resets are not counted again)."""
         events: list[dict[str, Any]] = []
         samples = 0
         run: list[tuple[np.ndarray, Batch]] = []
@@ -497,7 +586,7 @@ class RefitWorker:
         for seq, batch in batches:
             if run and shape(run[-1][1]) != shape(batch):
                 flush()
-            t = self._prepare(batch, seq, feed)
+            t = self._prepare(batch, seq, feed, count=not replay)
             self._account(batch, t, seq, feed)
             run.append((t, batch))
             samples += batch.n
@@ -590,9 +679,13 @@ class RefitWorker:
                 now = time.monotonic()
                 if now - last_renew >= lease.ttl_s / 3:
                     self.store.renew_leases(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
+                    workers, demand = self.store.heartbeat(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
+                    self._share = max(1, math.ceil(demand / max(1, workers)))
                     last_renew = now
-                room = max(1, lease.max_devices - len(self._leased))
-                got = self.store.acquire_leases(  # type: ignore[attr-defined]
+                room = min(lease.max_devices, self._share) - len(self._leased)
+                if room <= 0:
+                    room = 0 if self._leased else 1  # (a worker holding nothing always takes one)
+                got = [] if room == 0 else self.store.acquire_leases(  # type: ignore[attr-defined]
                     lease.owner, lease.ttl_s, room, prefer=wanted)
             except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
                 log.warning("leases: %s", exc)
@@ -604,13 +697,44 @@ class RefitWorker:
             for device_id in wanted:  # new batches for a device we already hold: look again
                 if device_id in self._leased and device_id not in got:
                     self._enqueue(device_id)
+            try:
+                self._keep_or_release_idle(lease)
+            except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
+                log.warning("leases: %s", exc)
+                self._stop.wait(lease.poll_s)
 
-    def _release(self, device_id: str) -> None:
-        self._leased.discard(device_id)
-        try:
-            self.store.release_lease(self.lease.owner, device_id)  # type: ignore[union-attr, attr-defined]
-        except Exception as exc:  # noqa: BLE001 - it expires anyway
-            log.info("device %s: lease not released (%s); it expires", device_id, exc)
+    def _keep_or_release_idle(self, lease: "LeaseConfig") -> None:
+        """Feed held devices that got batches through another process; give up the leases
+        of devices idle for ``idle_s``, or the longest idle when the room is needed."""
+        if self._idle:
+            for device_id in self.store.leased_with_pending(lease.owner):  # type: ignore[attr-defined]
+                if device_id in self._idle:
+                    self._enqueue(device_id)
+        now = time.monotonic()
+        idle = sorted(self._idle.items(), key=lambda kv: kv[1])
+        # beyond the share of the fleet's active devices per live worker, or when the room
+        # is needed, idle devices go first: other workers take them with their next batch
+        keep = min(self._share, lease.max_devices - max(1, lease.max_devices // 8))
+        spare = len(self._leased) - keep
+        for device_id, since in idle:
+            if spare > 0 or now - since >= lease.idle_s:
+                if self._release(device_id):
+                    spare -= 1
+
+    def _release(self, device_id: str, force: bool = False) -> bool:
+        """Give a lease up (``force``: at a stop) unless the device has work again; its
+        calibrator is written first if it is ahead of its checkpoint."""
+        with self.device_lock(device_id):
+            if not force and self._idle.pop(device_id, None) is None:
+                return False  # enqueued again meanwhile
+            self._checkpoint_now(device_id)  # the next holder restores it without a replay
+            self._forget(device_id)  # memory is bounded by the leases held
+            self._leased.discard(device_id)
+            try:
+                self.store.release_lease(self.lease.owner, device_id)  # type: ignore[union-attr, attr-defined]
+            except Exception as exc:  # noqa: BLE001 - it expires anyway
+                log.info("device %s: lease not released (%s); it expires", device_id, exc)
+            return True
 
     # ------------------------------------------------------------ admin
     def publish_admin(
@@ -627,14 +751,14 @@ class RefitWorker:
             try:
                 return self._publish_admin_once(device_id, version, seed, timeout_s)
             except ConflictError:
-                self._cache.pop(device_id, None)
+                self._forget(device_id)
                 if attempt == 4:
                     raise
                 time.sleep(0.05 * (attempt + 1))
             except BaseException:
                 # the seed went into the cached calibrator before the commit: a write that
                 # failed must not reach a later refit through the cache
-                self._cache.pop(device_id, None)
+                self._forget(device_id)
                 raise
         raise AssertionError("unreachable")  # pragma: no cover
 
@@ -642,7 +766,7 @@ class RefitWorker:
         self, device_id: str, version: NewVersion, seed: dict[str, Any] | None, timeout_s: float
     ) -> int:
         with self.device_lock(device_id):
-            rec = self.store.load_device(device_id)
+            rec = self.store.load_device(device_id, with_state=False)
             expected = rec.processed_seq if rec else None
             cal: Calibrator | None = None
             if seed is not None and hasattr(self.factory.cls, "seed_calibration"):
@@ -665,7 +789,7 @@ class RefitWorker:
                 expected_processed_seq=expected,
                 processed_seq=expected,
                 samples_added=0,
-                calibrator_state=cal.to_json() if cal is not None else (rec.calibrator_state if rec else None),
+                calibrator_state=cal.to_json() if cal is not None else None,  # None: the checkpoint stays
                 calibrator_status=str(cal.status) if cal is not None else (rec.calibrator_status if rec else None),
                 last_refit=rec.last_refit if rec else None,
                 feed_state=rec.feed_state if rec else {},
@@ -673,7 +797,12 @@ class RefitWorker:
                 expected_state_rev=rec.state_rev if rec else None,
             )
             numbers = self.store.commit_progress(progress).result(timeout=timeout_s)
+            rev = rec.state_rev + 1 if rec is not None and rec.state_rev is not None else None
             if cal is not None:
-                rev = rec.state_rev + 1 if rec is not None and rec.state_rev is not None else None
                 self._cache[device_id] = ((expected, rev), cal)
+                self._dirty.pop(device_id, None)
+            else:  # the calibrator did not change: what is cached stays valid
+                cached = self._cache.get(device_id)
+                if cached is not None and rec is not None and cached[0] == (expected, rec.state_rev):
+                    self._cache[device_id] = ((expected, rev), cached[1])
             return numbers[-1]

@@ -93,6 +93,9 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
     with psycopg.connect(url, autocommit=True) as conn:  # back to what schema 1 had
         conn.execute("DROP TABLE refusals")
         conn.execute("DROP FUNCTION selfcal_ingest")  # v3's one-round-trip ingest
+        conn.execute("DROP TABLE checkpoints")  # v4: the state in devices.calibrator_state until then
+        conn.execute("INSERT INTO devices(device_id, created_at, processed_seq, calibrator_state, feed_state) "
+                     "VALUES ('dev-s', 0, 4, '{\"s\": 1}', '{\"samples\": 100}')")
         conn.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
     store = PostgresStore(url)
     store.open()
@@ -103,11 +106,16 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
         first = store.submit_batch("dev-m", 0, 1, b"x", 1.0, b"d", 1000).result(timeout=30)
         again = store.submit_batch("dev-m", 0, 1, b"x", 1.0, b"d", 1000).result(timeout=30)
         assert (first.duplicate, again.duplicate) == (False, True)
+        # v4: the calibrator state is the device's checkpoint at its processed seq
+        rec = store.load_device("dev-s")
+        assert rec.calibrator_state == '{"s": 1}' and rec.checkpoint.seq == 4
+        assert rec.checkpoint.feed_state == {"samples": 100}
     finally:
         store.close()
     with psycopg.connect(url, autocommit=True) as conn:
         assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == str(SCHEMA_VERSION)
-    assert SCHEMA_VERSION == 3
+        assert conn.execute("SELECT calibrator_state FROM devices WHERE device_id = 'dev-s'").fetchone() == (None,)
+    assert SCHEMA_VERSION == 4
 
 
 def test_the_refit_worker_logs_refits_without_a_model_and_rejected_batches():

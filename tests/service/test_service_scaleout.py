@@ -129,9 +129,14 @@ def test_kill9_of_a_worker_and_an_api_process_loses_nothing_and_matches_one_proc
         for th in threads:
             th.join(timeout=240)
         assert all(n == N_POSES for n in sent.values()), sent
-        # uvicorn's supervisor replaced the killed API process
-        now_children = [c for c in child_pids(srv.proc.pid, "spawn_main")
-                        if "resource_tracker" not in Path(f"/proc/{c}/cmdline").read_text(errors="replace")]
+        # uvicorn's supervisor replaces the killed API process (it looks every half second)
+        deadline = time.monotonic() + 30
+        while True:
+            now_children = [c for c in child_pids(srv.proc.pid, "spawn_main")
+                            if "resource_tracker" not in Path(f"/proc/{c}/cmdline").read_text(errors="replace")]
+            if len(now_children) == 3 or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
         assert api_children[0] not in now_children and len(now_children) == 3, (api_children, now_children)
         # the surviving worker takes the killed one's devices over once its leases expire
         deadline = time.monotonic() + 120

@@ -148,9 +148,10 @@ INSERT INTO meta VALUES ('schema_version', '1');
 
 @only_sqlite
 def test_v1_database_migrates_and_keeps_the_resend_rules(tmp_path):
-    """A schema-1 database (batches 0 and 1 stored, 0 fed) opens as schema 3 (2: batch
-    states; 3: the refusal log): batch 0 is fed, 1 pending; a resend of 1 with its own
-    bytes is a duplicate, with other bytes a conflict (the migration hashed the stored payloads)."""
+    """A schema-1 database (batches 0 and 1 stored, 0 fed) opens as schema 4 (2: batch
+    states; 3: the refusal log; 4: checkpoints): batch 0 is fed, 1 pending; a resend of 1
+    with its own bytes is a duplicate, with other bytes a conflict (the migration hashed
+    the stored payloads); the device's calibrator state is its checkpoint at seq 0."""
     import hashlib
     import sqlite3
 
@@ -162,7 +163,8 @@ def test_v1_database_migrates_and_keeps_the_resend_rules(tmp_path):
     b0.seq, b1.seq = 0, 1
     conn = sqlite3.connect(db)
     conn.executescript(V1_SCHEMA)
-    conn.execute("INSERT INTO devices(device_id, created_at, batches_stored, processed_seq) VALUES ('d', 0, 2, 0)")
+    conn.execute("INSERT INTO devices(device_id, created_at, batches_stored, processed_seq, calibrator_state, "
+                 "feed_state) VALUES ('d', 0, 2, 0, '{\"state\": 1}', '{\"samples\": 7}')")
     for b in (b0, b1):
         conn.execute("INSERT INTO batches VALUES ('d', ?, ?, 0, ?)", (b.seq, b.n, b.to_bytes()))
     conn.commit()
@@ -171,6 +173,11 @@ def test_v1_database_migrates_and_keeps_the_resend_rules(tmp_path):
     store.open()
     try:
         assert [p.seq for p in store.pending_batches("d", 10)] == [1]
+        rec = store.load_device("d")
+        assert rec.calibrator_state == '{"state": 1}'
+        assert rec.checkpoint is not None and rec.checkpoint.seq == 0 and rec.checkpoint.feed_state == {"samples": 7}
+        assert store.load_device("d", with_state=False).calibrator_state is None
+        assert [b.seq for b in store.fed_batches("d", None, 0, 10)] == [0]
         same = b1.to_bytes()
         assert store.submit_batch("d", 1, b1.n, same, 1.0, hashlib.sha256(same).digest(), 100).result().duplicate
         other = _batch(seed=3)
@@ -182,8 +189,9 @@ def test_v1_database_migrates_and_keeps_the_resend_rules(tmp_path):
         store.close()
     conn = sqlite3.connect(db)
     version = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0]
-    assert version == "3"  # v2 added the batch states, v3 the refusal log (empty)
+    assert version == "4"  # v2 added the batch states, v3 the refusal log (empty), v4 checkpoints
     assert conn.execute("SELECT COUNT(*) FROM refusals").fetchone()[0] == 0
+    assert conn.execute("SELECT calibrator_state FROM devices").fetchall() == [(None,)]  # moved, not copied
 
 
 # ----------------------------------------------------------------- ordering contract

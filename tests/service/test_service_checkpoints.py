@@ -1,0 +1,196 @@
+"""Checkpoint and replay: the calibrator state is written every ``checkpoint_samples``, and
+a worker that restores a device (after a crash, on another host) feeds the batches fed
+since the checkpoint again. The calibration it then publishes must be the one a worker
+that never stopped publishes (runs on SQLite and on PostgreSQL)."""
+
+from __future__ import annotations
+
+import hashlib
+import time
+
+import numpy as np
+import pytest
+from service_helpers import backend_db
+
+N = 8000  # samples a batch
+CKPT = 40_000  # a checkpoint every 5 batches
+
+
+@pytest.fixture(scope="module")
+def stream():
+    """Hours 3.3 to 10 of a simulated 20-Hz insole's day (seeded), as 60 batches of 8 000
+    samples (the calibrator's first versions come in these hours)."""
+    from selfcal.config import load_config, section
+    from selfcal.sim.config import SimConfig
+    from selfcal.sim.simulator import Simulation
+
+    cfg = load_config()
+    sim = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(11), days=0.45)
+    ch = sim.samples()
+    n, i0 = N, int(np.searchsorted(ch.t_s, 12_000.0))
+    assert len(ch.t_s) >= i0 + 60 * n
+    return cfg, [(k, *(x[i0 + k * n:i0 + (k + 1) * n] for x in (ch.t_s, ch.acc_g, ch.temp_c, ch.pressure_kpa)))
+                 for k in range(60)]
+
+
+def _open(db: str):
+    from selfcal_service.main import open_store
+    from selfcal_service.settings import load_settings
+
+    store = open_store(load_settings({}, overrides={"db_path": db}, environ={}))
+    store.open()
+    return store
+
+
+def _worker(store, cfg, checkpoint_samples: int):
+    from selfcal_service.metrics import Metrics
+    from selfcal_service.settings import load_settings
+    from selfcal_service.worker import CalibratorFactory, RefitWorker
+
+    factory = CalibratorFactory(load_settings({}, environ={}).calibrator,
+                                config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
+    return RefitWorker(store, factory, Metrics(), max_batches_per_cycle=1, checkpoint_samples=checkpoint_samples)
+
+
+def _ingest(store, batches) -> None:
+    from selfcal_service.schemas import Batch
+
+    for k, t, acc, temp, pres in batches:
+        payload = Batch(seq=k, t_s=t, acc_g=acc, temp_c=temp, pressure_kpa=pres).to_bytes()
+        store.submit_batch("ins", k, len(t), payload, time.time(), hashlib.sha256(payload).digest(), 10**6).result()
+
+
+def _drain(worker) -> int:
+    cycles = 0
+    while worker.process("ins"):
+        cycles += 1
+    return cycles + 1
+
+
+def _versions(store):
+    return [(v.status, v.calibration, v.provenance.get("seq_range")) for v in store.history("ins")]
+
+
+def _same_calibration(a, b) -> None:
+    assert [(s, r) for s, _, r in a] == [(s, r) for s, _, r in b]
+    for (_, ca, _), (_, cb, _) in zip(a, b):
+        assert ca.keys() == cb.keys()
+        pa, pb = ca["params"], cb["params"]
+        assert pa.keys() == pb.keys()
+        np.testing.assert_allclose([pa[k] for k in pa], [pb[k] for k in pa], rtol=1e-9, atol=1e-12)
+
+
+def test_a_worker_that_restores_from_a_checkpoint_publishes_what_one_that_never_stopped_does(tmp_path, stream):
+    cfg, batches = stream
+    ref_store = _open(backend_db(tmp_path / "ref.db"))
+    store = _open(backend_db(tmp_path / "ckpt.db"))
+    try:
+        _ingest(ref_store, batches)
+        ref = _worker(ref_store, cfg, checkpoint_samples=0)  # the state written every cycle
+        _drain(ref)
+        ref_versions = _versions(ref_store)
+        assert len(ref_versions) >= 2, "the stream must publish versions for the comparison to mean something"
+
+        _ingest(store, batches[:37])
+        first = _worker(store, cfg, checkpoint_samples=CKPT)
+        cycles = _drain(first)
+        rec = store.load_device("ins", with_state=False)
+        assert rec.processed_seq == 36
+        # one checkpoint every 5 cycles, and the last is behind
+        assert first.metrics.get("selfcal_worker_checkpoints_total") == cycles // 5
+        assert rec.checkpoint is not None and rec.checkpoint.seq < 36
+        behind = 36 - rec.checkpoint.seq
+
+        # the first worker is gone without a word (kill -9): a second one takes over
+        _ingest(store, batches[37:])
+        second = _worker(store, cfg, checkpoint_samples=CKPT)
+        _drain(second)
+        assert second.replays == 1
+        assert second.metrics.get("selfcal_worker_replayed_samples_total") == behind * N
+        _same_calibration(_versions(store), ref_versions)
+        final = store.load_device("ins", with_state=False)
+        assert final.processed_seq == 59 and final.samples_processed == 60 * N
+
+        # a stop writes the cached state: the next restore needs no replay, and its
+        # calibrator is the never-stopped one
+        assert second.flush_checkpoints() == (1 if final.checkpoint.seq != 59 else 0)
+        rec = store.load_device("ins", with_state=False)
+        assert rec.checkpoint.seq == 59
+        third = _worker(store, cfg, checkpoint_samples=CKPT)
+        cal = third._calibrator(rec)
+        assert third.replays == 0
+        want = ref._calibrator(ref_store.load_device("ins", with_state=False)).calibration()
+        got = cal.calibration()
+        np.testing.assert_allclose([got["params"][k] for k in want["params"]],
+                                   [want["params"][k] for k in want["params"]], rtol=1e-9, atol=1e-12)
+    finally:
+        store.close()
+        ref_store.close()
+
+
+def test_a_checkpoint_is_not_written_over_a_newer_cycle(tmp_path, stream):
+    """``write_checkpoint`` at a seq the device has moved past writes nothing (a slow
+    worker must not put an old state over a newer one)."""
+    cfg, batches = stream
+    store = _open(backend_db(tmp_path / "stale.db"))
+    try:
+        _ingest(store, batches[:3])
+        worker = _worker(store, cfg, checkpoint_samples=10**6)
+        _drain(worker)
+        rec = store.load_device("ins", with_state=False)
+        assert rec.processed_seq == 2 and rec.checkpoint is None  # nothing written yet
+        assert not store.write_checkpoint("ins", 1, "{}", {})
+        assert store.load_device("ins").checkpoint is None
+        assert worker.flush_checkpoints() == 1
+        rec = store.load_device("ins")
+        assert rec.checkpoint.seq == 2 and rec.calibrator_state and rec.checkpoint.feed_state["samples"] == 3 * N
+    finally:
+        store.close()
+
+
+@pytest.mark.skipif(__import__("service_helpers").backend() != "postgresql",
+                    reason="PostgreSQL scale-out (runs in the SELFCAL_TEST_BACKEND=postgresql pass)")
+def test_a_worker_keeps_an_idle_devices_lease_and_writes_its_checkpoint_when_it_gives_it_up(tmp_path, stream):
+    """With leases (PostgreSQL), a device fed everything it had stays leased for
+    ``idle_s``: batches stored by another process are found and fed by the same worker
+    from its cached calibrator, no state written; when the lease is given up, the state
+    is written as the checkpoint at the last fed seq."""
+    from selfcal_service.metrics import Metrics
+    from selfcal_service.pg_store import PostgresStore
+    from selfcal_service.settings import load_settings
+    from selfcal_service.worker import CalibratorFactory, LeaseConfig, RefitWorker
+
+    cfg, batches = stream
+    url = backend_db(tmp_path / "lease.db")
+    api, db = PostgresStore(url), PostgresStore(url)  # an API process's store, the worker's
+    api.open()
+    db.open()
+    factory = CalibratorFactory(load_settings({}, environ={}).calibrator,
+                                config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
+    worker = RefitWorker(db, factory, Metrics(), checkpoint_samples=10**6,
+                         lease=LeaseConfig(owner="w1", ttl_s=5.0, poll_s=0.05, idle_s=1.5))
+
+    def wait_for(pred, what, timeout_s=30.0):
+        t_end = time.monotonic() + timeout_s
+        while not pred():
+            assert time.monotonic() < t_end, what
+            time.sleep(0.02)
+
+    try:
+        worker.start()
+        _ingest(api, batches[:1])
+        wait_for(lambda: api.load_device("ins", with_state=False).processed_seq == 0, "batch 0 fed")
+        t_fed = time.monotonic()
+        _ingest(api, batches[1:2])  # stored by another process: the worker is not told
+        wait_for(lambda: api.load_device("ins", with_state=False).processed_seq == 1, "batch 1 fed")
+        if time.monotonic() - t_fed < 1.0:  # (a machine slower than that proves nothing here)
+            assert api.lease_counts() == {"w1": 1}
+            assert api.load_device("ins", with_state=False).checkpoint is None  # no state written yet
+        wait_for(lambda: api.lease_counts() == {}, "the idle lease given up")
+        rec = api.load_device("ins")
+        assert rec.checkpoint is not None and rec.checkpoint.seq == 1 and rec.checkpoint.feed_state["samples"] == 2 * N
+        assert worker.cycles == 2 and worker.replays == 0
+    finally:
+        worker.stop()
+        api.close()
+        db.close()
