@@ -356,6 +356,7 @@ def make_worker(store: Storage, factory: CalibratorFactory, metrics: Metrics, se
         reorder_window_s=settings.reorder_window_s,
         min_cycle_interval_s=settings.min_cycle_interval_s,
         checkpoint_samples=settings.checkpoint_samples,
+        cache_max_devices=settings.cache_max_devices,
         lease=lease,
     )
     return worker

@@ -56,6 +56,7 @@ class Metrics:
         "selfcal_worker_samples_total": ("counter", "samples fed to calibrators"),
         "selfcal_worker_cycles_total": ("counter", "refit-worker cycles committed"),
         "selfcal_worker_checkpoints_total": ("counter", "cycles that also wrote the device's whole calibrator state (a checkpoint)"),
+        "selfcal_worker_evictions_total": ("counter", "calibrators dropped from memory beyond cache_max_devices (written first if ahead)"),
         "selfcal_worker_replays_total": ("counter", "calibrators restored from a checkpoint with the batches fed since fed again"),
         "selfcal_worker_replayed_samples_total": ("counter", "samples fed again in restores (not counted in selfcal_worker_samples_total)"),
         "selfcal_refits_total": ("counter", "refit outcomes by outcome (published or typed reason)"),

@@ -59,6 +59,12 @@ class Settings(BaseModel):
                     "were fed since it was last written (0: every cycle); a restore (restart, lease takeover) feeds "
                     "the stored batches since then again. 12 000 = 10 min of a 20-Hz insole",
     )
+    cache_max_devices: int = Field(
+        0, ge=0, le=10_000_000,
+        description="calibrators a refit process keeps in memory (~1.5 MB each after a week of wear); beyond it the "
+                    "least recently fed is written as a checkpoint and dropped, and restored (with a replay) when its "
+                    "next batch comes; 0: every device it feeds",
+    )
     reorder_window_s: float = Field(
         10.0, ge=0, le=3600,
         description="a batch whose predecessor seq is missing waits this long for it before being fed",

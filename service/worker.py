@@ -174,6 +174,7 @@ class RefitWorker:
         reorder_window_s: float = 10.0,
         min_cycle_interval_s: float = 0.0,
         checkpoint_samples: int = 0,
+        cache_max_devices: int = 0,
         lease: "LeaseConfig | None" = None,
     ):
         self.store = store
@@ -183,7 +184,8 @@ class RefitWorker:
         self.max_batches = max_batches_per_cycle
         self.time_reset_gap_s = time_reset_gap_s
         self._shards = [_Shard() for _ in range(threads)]
-        self._cache: dict[str, tuple[int | None, Calibrator]] = {}
+        # device -> ((processed_seq, state_rev) it stands at, calibrator), least recently used first
+        self._cache: "OrderedDict[str, tuple[tuple[int | None, int | None], Calibrator]]" = OrderedDict()
         self._locks: dict[str, threading.Lock] = {}
         self._locks_guard = threading.Lock()
         self._stop = threading.Event()
@@ -196,6 +198,9 @@ class RefitWorker:
         # the calibrator state is written (a checkpoint) once this many samples were fed
         # since the last one (0: every cycle); a restore replays the batches fed since
         self.checkpoint_samples = checkpoint_samples
+        # calibrators kept in memory (0: every device fed); the least recently used beyond
+        # it is written as a checkpoint if it is ahead of one, then dropped
+        self.cache_max_devices = cache_max_devices
         # devices whose cached calibrator is ahead of their checkpoint: (processed_seq, feed_state)
         self._dirty: dict[str, tuple[int | None, dict[str, Any]]] = {}
         self.replays = 0
@@ -325,6 +330,26 @@ class RefitWorker:
                 if not held:  # kept for its next batch; the lease thread gives it up when idle
                     self._idle[device_id] = time.monotonic()
 
+    def _keep(self, device_id: str, key: tuple[int | None, int | None], cal: Calibrator) -> None:
+        """Cache a device's calibrator; beyond ``cache_max_devices`` the least recently used
+        other devices are written as checkpoints (if ahead) and dropped."""
+        self._cache[device_id] = (key, cal)
+        self._cache.move_to_end(device_id)
+        if self.cache_max_devices <= 0:
+            return
+        for other in list(self._cache)[: max(0, len(self._cache) - self.cache_max_devices)]:
+            if other == device_id:
+                continue
+            lock = self.device_lock(other)
+            if not lock.acquire(blocking=False):  # in a cycle on another thread: later
+                continue
+            try:
+                self._checkpoint_now(other)
+                self._forget(other)
+                self.metrics.inc("selfcal_worker_evictions_total")
+            finally:
+                lock.release()
+
     def _forget(self, device_id: str) -> None:
         """Drop the cached calibrator: the next cycle restores it from the store."""
         self._cache.pop(device_id, None)
@@ -333,10 +358,11 @@ class RefitWorker:
     def _calibrator(self, rec: DeviceRecord) -> Calibrator:
         cached = self._cache.get(rec.device_id)
         if cached is not None and cached[0] == (rec.processed_seq, rec.state_rev):
+            self._cache.move_to_end(rec.device_id)
             return cached[1]
         cal = self._restore(rec)
         # cached at once: a cycle that feeds it and then fails drops it (``_forget``)
-        self._cache[rec.device_id] = ((rec.processed_seq, rec.state_rev), cal)
+        self._keep(rec.device_id, (rec.processed_seq, rec.state_rev), cal)
         return cal
 
     def _restore(self, rec: DeviceRecord) -> Calibrator:
@@ -495,7 +521,7 @@ class RefitWorker:
             )
             self.store.commit_progress(progress).result()  # durable before caching
             rev = None if rec.state_rev is None else rec.state_rev + 1
-            self._cache[device_id] = ((progress.processed_seq, rev), cal)
+            self._keep(device_id, (progress.processed_seq, rev), cal)
             if checkpoint:
                 self._dirty.pop(device_id, None)
                 self.metrics.inc("selfcal_worker_checkpoints_total")
@@ -799,10 +825,10 @@ class RefitWorker:
             numbers = self.store.commit_progress(progress).result(timeout=timeout_s)
             rev = rec.state_rev + 1 if rec is not None and rec.state_rev is not None else None
             if cal is not None:
-                self._cache[device_id] = ((expected, rev), cal)
+                self._keep(device_id, (expected, rev), cal)
                 self._dirty.pop(device_id, None)
             else:  # the calibrator did not change: what is cached stays valid
                 cached = self._cache.get(device_id)
                 if cached is not None and rec is not None and cached[0] == (expected, rec.state_rev):
-                    self._cache[device_id] = ((expected, rev), cached[1])
+                    self._keep(device_id, (expected, rev), cached[1])
             return numbers[-1]

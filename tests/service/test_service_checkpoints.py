@@ -52,12 +52,12 @@ def _worker(store, cfg, checkpoint_samples: int):
     return RefitWorker(store, factory, Metrics(), max_batches_per_cycle=1, checkpoint_samples=checkpoint_samples)
 
 
-def _ingest(store, batches) -> None:
+def _ingest(store, batches, device: str = "ins") -> None:
     from selfcal_service.schemas import Batch
 
     for k, t, acc, temp, pres in batches:
         payload = Batch(seq=k, t_s=t, acc_g=acc, temp_c=temp, pressure_kpa=pres).to_bytes()
-        store.submit_batch("ins", k, len(t), payload, time.time(), hashlib.sha256(payload).digest(), 10**6).result()
+        store.submit_batch(device, k, len(t), payload, time.time(), hashlib.sha256(payload).digest(), 10**6).result()
 
 
 def _drain(worker) -> int:
@@ -194,3 +194,32 @@ def test_a_worker_keeps_an_idle_devices_lease_and_writes_its_checkpoint_when_it_
         worker.stop()
         api.close()
         db.close()
+
+
+def test_a_bounded_cache_writes_the_calibrators_it_drops_and_restores_them_the_same(tmp_path, stream):
+    """With ``cache_max_devices`` = 1 and two devices fed in turn, each cycle drops the
+    other device's calibrator (written first, as it is ahead of its checkpoint) and
+    restores its own: the versions are those of an unbounded worker."""
+    cfg, batches = stream
+    ref_store, store = _open(backend_db(tmp_path / "ref2.db")), _open(backend_db(tmp_path / "lru.db"))
+    try:
+        for st in (ref_store, store):
+            _ingest(st, batches)
+            _ingest(st, batches, device="other")
+        ref = _worker(ref_store, cfg, checkpoint_samples=CKPT)
+        lru = _worker(store, cfg, checkpoint_samples=CKPT)
+        lru.cache_max_devices = 1
+        for w in (ref, lru):
+            for _ in range(60):
+                w.process("ins")
+                w.process("other")
+        assert len(lru._cache) == 1 and lru.metrics.get("selfcal_worker_evictions_total") >= 118
+        assert lru.replays == 0  # every dropped calibrator was written at its last seq: nothing to replay
+        for dev in ("ins", "other"):
+            assert store.load_device(dev, with_state=False).processed_seq == 59
+            _same_calibration([(v.status, v.calibration, v.provenance.get("seq_range")) for v in store.history(dev)],
+                              [(v.status, v.calibration, v.provenance.get("seq_range")) for v in ref_store.history(dev)])
+        assert len(ref_store.history("ins")) >= 2
+    finally:
+        store.close()
+        ref_store.close()
