@@ -528,18 +528,19 @@ class PostgresStore(GroupCommitStore):
                           "WHERE b.state = 0 AND d.lease_owner = %s", (owner,))
         return [r[0] for r in rows]
 
-    def heartbeat(self, owner: str, ttl_s: float) -> tuple[int, int]:
-        """Record ``owner`` as live; return (live workers, active devices: leased now or
-        with pending batches). Workers not seen for ten lease times are deleted."""
+    def heartbeat(self, owner: str, ttl_s: float) -> tuple[int, int, int]:
+        """Record ``owner`` as live; return (live workers, devices leased now, devices with
+        pending batches that no live lease holds). Workers not seen for ten lease times
+        are deleted."""
         self._read(f"INSERT INTO workers(owner, seen_at) VALUES (%(me)s, {_NOW}) ON CONFLICT (owner) DO UPDATE "
                    "SET seen_at = excluded.seen_at RETURNING 1", {"me": owner})
         self._read(f"DELETE FROM workers WHERE seen_at < {_NOW} - %(old)s RETURNING 1", {"old": 10 * ttl_s})
         rows = self._read(
             f"SELECT (SELECT COUNT(*) FROM workers WHERE seen_at >= {_NOW} - %(ttl)s),"
-            f" (SELECT COUNT(*) FROM devices WHERE lease_owner IS NOT NULL AND lease_until >= {_NOW})"
-            " + (SELECT COUNT(DISTINCT b.device_id) FROM batches b JOIN devices d ON d.device_id = b.device_id"
+            f" (SELECT COUNT(*) FROM devices WHERE lease_owner IS NOT NULL AND lease_until >= {_NOW}),"
+            " (SELECT COUNT(DISTINCT b.device_id) FROM batches b JOIN devices d ON d.device_id = b.device_id"
             f" WHERE b.state = 0 AND (d.lease_owner IS NULL OR d.lease_until < {_NOW}))", {"ttl": ttl_s})
-        return int(rows[0][0]), int(rows[0][1])
+        return int(rows[0][0]), int(rows[0][1]), int(rows[0][2])
 
     def forget_worker(self, owner: str) -> None:
         """``owner`` stops (its share goes to the others at once)."""

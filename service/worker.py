@@ -214,6 +214,7 @@ class RefitWorker:
         self._idle: dict[str, float] = {}  # leased devices fed everything they had: since (monotonic s)
         # devices a worker should hold: the fleet's leased and waiting devices per live worker
         self._share = lease.max_devices if lease is not None else 0
+        self._waiting = 0  # devices with pending batches that no worker held (last heartbeat)
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -320,14 +321,26 @@ class RefitWorker:
             finally:
                 with shard.cond:
                     self.busy -= 1
-            if self.lease is not None and len(self._leased) > min(self._share, self.lease.max_devices):
-                self._release(device_id, force=True)  # more than its share: another worker takes it next
+            if self.lease is None:
+                if more:
+                    self._enqueue(device_id)
+            elif device_id not in self._leased:
+                pass  # given up meanwhile
             elif more:
-                self._enqueue(device_id)
-            elif self.lease is not None and device_id in self._leased:
+                if len(self._leased) > min(self._share, self.lease.max_devices):
+                    self._release(device_id, force=True)  # more than its share: another worker takes it
+                else:
+                    self._enqueue(device_id)
+            else:
                 with self._held_lock:
                     held = device_id in self._held
-                if not held:  # kept for its next batch; the lease thread gives it up when idle
+                if held:
+                    pass  # its hold timer looks at it again
+                elif len(self._leased) > self._keep_cap():
+                    # the room is needed: given up at once, and not written (the workers are
+                    # behind; whoever takes it next restores it, from memory if it was this one)
+                    self._release(device_id, force=True, checkpoint=False)
+                else:  # kept for its next batch; the lease thread gives it up when idle
                     self._idle[device_id] = time.monotonic()
 
     def _keep(self, device_id: str, key: tuple[int | None, int | None], cal: Calibrator) -> None:
@@ -705,8 +718,9 @@ class RefitWorker:
                 now = time.monotonic()
                 if now - last_renew >= lease.ttl_s / 3:
                     self.store.renew_leases(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
-                    workers, demand = self.store.heartbeat(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
-                    self._share = max(1, math.ceil(demand / max(1, workers)))
+                    workers, leased, waiting = self.store.heartbeat(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
+                    self._share = max(1, math.ceil((leased + waiting) / max(1, workers)))
+                    self._waiting = waiting
                     last_renew = now
                 room = min(lease.max_devices, self._share) - len(self._leased)
                 if room <= 0:
@@ -729,6 +743,18 @@ class RefitWorker:
                 log.warning("leases: %s", exc)
                 self._stop.wait(lease.poll_s)
 
+    def _keep_cap(self) -> int:
+        """Devices this worker may keep leased between batches: its share of the fleet's
+        active devices, less a slack of an eighth of ``max_devices`` for devices waiting;
+        none while more devices than that wait for a worker (the fleet outgrew the
+        workers' leases: each device is given up once fed, as a fair queue)."""
+        lease = self.lease
+        assert lease is not None
+        slack = max(1, lease.max_devices // 8)
+        if self._waiting > slack:  # devices wait for a worker: none is kept idle (the workers are behind)
+            return 0
+        return min(self._share, lease.max_devices - slack)
+
     def _keep_or_release_idle(self, lease: "LeaseConfig") -> None:
         """Feed held devices that got batches through another process; give up the leases
         of devices idle for ``idle_s``, or the longest idle when the room is needed."""
@@ -740,21 +766,23 @@ class RefitWorker:
         idle = sorted(self._idle.items(), key=lambda kv: kv[1])
         # beyond the share of the fleet's active devices per live worker, or when the room
         # is needed, idle devices go first: other workers take them with their next batch
-        keep = min(self._share, lease.max_devices - max(1, lease.max_devices // 8))
-        spare = len(self._leased) - keep
+        spare = len(self._leased) - self._keep_cap()
         for device_id, since in idle:
             if spare > 0 or now - since >= lease.idle_s:
                 if self._release(device_id):
                     spare -= 1
 
-    def _release(self, device_id: str, force: bool = False) -> bool:
-        """Give a lease up (``force``: at a stop) unless the device has work again; its
-        calibrator is written first if it is ahead of its checkpoint."""
+    def _release(self, device_id: str, force: bool = False, checkpoint: bool = True) -> bool:
+        """Give a lease up (``force``: whether idle or not) unless the device has work
+        again; with ``checkpoint`` its calibrator is written first if it is ahead of its
+        checkpoint. The cached calibrator stays: it is used again if this worker is the
+        next to take the device (the state revision tells)."""
         with self.device_lock(device_id):
             if not force and self._idle.pop(device_id, None) is None:
                 return False  # enqueued again meanwhile
-            self._checkpoint_now(device_id)  # the next holder restores it without a replay
-            self._forget(device_id)  # memory is bounded by the leases held
+            self._idle.pop(device_id, None)
+            if checkpoint:
+                self._checkpoint_now(device_id)  # the next holder restores it without a replay
             self._leased.discard(device_id)
             try:
                 self.store.release_lease(self.lease.owner, device_id)  # type: ignore[union-attr, attr-defined]
