@@ -46,6 +46,7 @@ from selfcal_service.storage import (
     VersionRecord,
     RefusalRecord,
     device_from_row,
+    upsert_checkpoint,
     with_checkpoint,
     dumps_json,
     fleet_from_row,
@@ -409,20 +410,11 @@ class PostgresStore(GroupCommitStore):
                                (device_id,)).fetchone()
             if row is None or row[0] != seq:
                 return False
-            self._upsert_checkpoint(conn, device_id, seq, state, feed_state, time.time())
+            upsert_checkpoint(conn, "%s", device_id, seq, state, feed_state, time.time())
             return True
 
         op.device_id = device_id  # type: ignore[attr-defined]
         return self._submit(op).result()
-
-    @staticmethod
-    def _upsert_checkpoint(conn: Any, device_id: str, seq: int | None, state: str,
-                           feed_state: dict[str, Any], now: float) -> None:
-        conn.execute(
-            "INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) VALUES (%s, %s, %s, %s, %s) "
-            "ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state, "
-            "feed_state = excluded.feed_state, written_at = excluded.written_at",
-            (device_id, seq, state, dumps_json(feed_state), now))
 
     def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:
         rows = self._read(
@@ -464,7 +456,7 @@ class PostgresStore(GroupCommitStore):
                  None if p.last_refit is None else dumps_json(p.last_refit), dumps_json(p.feed_state),
                  numbers[-1] if numbers else None, now, p.device_id))
             if p.calibrator_state is not None:
-                self._upsert_checkpoint(conn, p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now)
+                upsert_checkpoint(conn, "%s", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now)
             if p.fed_seqs:
                 conn.execute("UPDATE batches SET state = 1 WHERE device_id = %s AND seq = ANY(%s) AND state = 0",
                              (p.device_id, list(p.fed_seqs)))

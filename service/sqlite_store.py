@@ -42,6 +42,7 @@ from selfcal_service.storage import (
     VersionRecord,
     RefusalRecord,
     device_from_row,
+    upsert_checkpoint,
     with_checkpoint,
     dumps_json,
     fleet_from_row,
@@ -335,19 +336,10 @@ class SQLiteStore(GroupCommitStore):
             row = conn.execute("SELECT processed_seq FROM devices WHERE device_id = ?", (device_id,)).fetchone()
             if row is None or row[0] != seq:
                 return False
-            self._upsert_checkpoint(conn, device_id, seq, state, feed_state, time.time())
+            upsert_checkpoint(conn, "?", device_id, seq, state, feed_state, time.time())
             return True
 
         return self._submit(op).result()
-
-    @staticmethod
-    def _upsert_checkpoint(conn: sqlite3.Connection, device_id: str, seq: int | None, state: str,
-                           feed_state: dict[str, Any], now: float) -> None:
-        conn.execute(
-            "INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) VALUES (?, ?, ?, ?, ?) "
-            "ON CONFLICT(device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state, "
-            "feed_state = excluded.feed_state, written_at = excluded.written_at",
-            (device_id, seq, state, dumps_json(feed_state), now))
 
     def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:
         rows = self._reader().execute(
@@ -394,7 +386,7 @@ class SQLiteStore(GroupCommitStore):
             if cur.rowcount != 1:
                 raise ConflictError(f"device {p.device_id}: processed_seq changed under the worker")
             if p.calibrator_state is not None:
-                self._upsert_checkpoint(conn, p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now)
+                upsert_checkpoint(conn, "?", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now)
             if p.fed_seqs:
                 conn.executemany(
                     "UPDATE batches SET state = 1 WHERE device_id = ? AND seq = ? AND state = 0",

@@ -274,6 +274,18 @@ def device_from_row(row: tuple) -> DeviceRecord:
     )
 
 
+def upsert_checkpoint(conn: Any, placeholder: str, device_id: str, seq: int | None, state: str,
+                      feed_state: dict[str, Any], now: float) -> None:
+    """Write a device's checkpoint on a connection (``placeholder``: ``?`` for sqlite3,
+    ``%s`` for psycopg), in the caller's transaction."""
+    p = placeholder
+    conn.execute(
+        f"INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) VALUES ({p}, {p}, {p}, {p}, {p}) "
+        "ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state, "
+        "feed_state = excluded.feed_state, written_at = excluded.written_at",
+        (device_id, seq, state, dumps_json(feed_state), now))
+
+
 def with_checkpoint(rec: DeviceRecord, cols: tuple) -> DeviceRecord:
     """``rec`` with its checkpoint from the columns (exists, seq, feed_state JSON)."""
     exists, seq, feed = cols
