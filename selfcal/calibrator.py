@@ -236,9 +236,16 @@ class OnlineCalibrator:
             raise InputError(f"feed_samples: acc_g must be (n, 3) with n = len(t_s); got {acc_g.shape}, {t_s.shape}")
         if t_s.size == 0:
             return []
+        events: list[dict] = []
+        k_now = self.detector.state_.n_pressure
+        k_new = 0 if pressure_kpa is None else (np.shape(pressure_kpa)[1] if np.ndim(pressure_kpa) == 2 else None)
+        if k_now is not None and k_new is not None and k_new != k_now:
+            # the device's pressure channels changed (a firmware, a gateway): the detector's
+            # stream ends here (its open still window closed) and a new one starts
+            events = self._take_windows(self.detector.flush())
         # no model-dependent gate: the poses that could refute the model are never filtered by it
         windows = self.detector.feed(t_s, acc_g, temp_c=temp_c, pressure_kpa=pressure_kpa, to_cal=None)
-        return self.feed_windows(windows, int(t_s.size))
+        return events + self.feed_windows(windows, int(t_s.size))
 
     def feed_windows(self, windows, n_samples: int = 0) -> list[dict]:
         """Feed still windows that a detector with this calibrator's ``[detector]`` settings

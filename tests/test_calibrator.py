@@ -228,3 +228,28 @@ def test_windows_detected_elsewhere_give_the_same_versions():
 
     assert text(ev_direct) == text(ev_shared)
     assert shared.n_samples == direct.n_samples == len(t)
+
+
+def test_a_change_of_pressure_channels_starts_a_new_stream_instead_of_refusing_every_batch():
+    """A device whose pressure channels change mid-stream (4, then none: a firmware) keeps
+    being calibrated: the detector's stream ends at the change (its open still window is
+    closed) and a new one starts; the poses after the change are taken, and the result
+    does not depend on how each part is chunked."""
+    rng = np.random.default_rng(41)
+    truth = random_truth(rng)
+    t, raw, _ = sample_stream(rng, A9, truth, spread_directions(rng, 40))
+    half = len(t) // 2
+    pres = np.abs(rng.normal(20.0, 1.0, (half, 4)))
+    runs = []
+    for chunk in (53, 5000):
+        cal = OnlineCalibrator()
+        events = []
+        for a in range(0, half, chunk):
+            b = min(half, a + chunk)
+            events += cal.feed_samples(t[a:b], raw[a:b], pressure_kpa=pres[a:b])
+        n_first = len(cal.store)
+        events += _feed_in_chunks(cal, t[half:], raw[half:], chunk=chunk) + cal.flush()
+        runs.append((n_first, cal.n_samples, len(cal.store), [e["t_s"] for e in events if e["published"]]))
+    assert runs[0] == runs[1]
+    n_first, n_samples, n_cells, published = runs[0]
+    assert n_samples == len(t) and n_cells > n_first > 0 and published
