@@ -63,9 +63,31 @@ def gc_pauses(m: dict[str, float]) -> dict:
     return out
 
 
+def preload_worn(db: str, args) -> None:
+    """Every bench device gets the worn state before the service starts (bench/worker_cycle.py)."""
+    from worker_cycle import preload
+
+    from selfcal_service.main import open_store
+    from selfcal_service.settings import load_settings
+
+    store = open_store(load_settings({}, overrides={"db_path": db}, environ={}))
+    store.open()
+    try:
+        t0 = time.monotonic()
+        for d in range(args.devices):
+            preload(store, f"bench-{d:05d}", args.worn)
+        print(f"    preloaded {args.devices} worn devices in {time.monotonic() - t0:.0f} s", flush=True)
+    finally:
+        store.close()
+
+
 def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dict:
+    if getattr(args, "worn", None) is not None:
+        preload_worn(db, args)
     port = free_port()
     env = dict(os.environ, SELFCAL_API_KEYS=f"{KEY}=ingest+read", SELFCAL_MIN_CYCLE_INTERVAL_S=str(args.min_cycle_s))
+    if args.checkpoint_samples is not None:
+        env["SELFCAL_CHECKPOINT_SAMPLES"] = str(args.checkpoint_samples)
     cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", db, "--port", str(port), "--log-level", "warning"]
     if db.startswith("postgresql"):
         cmd += ["--workers", str(procs), "--no-refit"]
@@ -111,7 +133,8 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
             m = {}
         r.update(label=label, procs=procs, refit_workers=len(workers), backlog=backlog, gc=gc_pauses(m),
                  cycles=m.get("selfcal_worker_cycles_total", float("nan")),
-                 samples_fed=m.get("selfcal_worker_samples_total", float("nan")))
+                 samples_fed=m.get("selfcal_worker_samples_total", float("nan")),
+                 rejected=sum(v for k, v in m.items() if k.startswith("selfcal_rejected_batches_total")))
         return r
     finally:
         stop.set()
@@ -140,6 +163,11 @@ def main() -> int:
     ap.add_argument("--min-cycle-s", type=float, default=0.0,
                     help="[service] min_cycle_interval_s of the refit workers and SQLite's process (0: as batches come)")
     ap.add_argument("--no-sqlite", action="store_true")
+    ap.add_argument("--worn-days", type=float, default=0.0,
+                    help="start every device from the state of an insole worn this long (0: empty; a fleet at steady "
+                         "state is worn: its states are ~1.2 MB after a week)")
+    ap.add_argument("--checkpoint-samples", type=int, default=None,
+                    help="[service] checkpoint_samples of every process (default: the service's; 0: the state at every cycle)")
     args = ap.parse_args()
 
     from pg_cluster import PgCluster, unavailable
@@ -152,6 +180,19 @@ def main() -> int:
           f"({args.devices * 20:,} samples/s offered, {args.devices / args.batch_s:.0f} req/s), "
           f"{args.format} batches, {os.cpu_count()} CPUs shared by everything", flush=True)
     results = []
+    if args.worn_days > 0:
+        import numpy as np
+        from worker_cycle import worn_state
+
+        from selfcal.config import load_config, section
+        from selfcal.sim.config import SimConfig
+        from selfcal.sim.simulator import Simulation
+
+        cfg = load_config()
+        ch = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(2), days=args.worn_days).samples()
+        args.worn = worn_state(cfg, ch, len(ch.t_s), acc_only=True)  # the load sends g only
+        print(f"every device starts worn {args.worn_days:g} days: {args.worn[2]} pose cells, "
+              f"state {len(args.worn[0]) / 1024:,.0f} KiB", flush=True)
     with PgCluster(max_connections=200) as pg, tempfile.TemporaryDirectory(prefix="selfcal-scale-") as tmp:
         configs = [] if args.no_sqlite else [("sqlite, 1 process (embedded refits)", f"{tmp}/scale.db", 1)]
         for n in [int(x) for x in args.procs.split(",")]:
@@ -173,6 +214,8 @@ def main() -> int:
             if r["cycles"] > 0:
                 print(f"    refit cycles committed: {r['cycles']:,.0f} for {r['samples_fed']:,.0f} samples fed "
                       f"({r['samples_fed'] / r['cycles'] / (args.batch_s * 20):.1f} batches a cycle)", flush=True)
+                if r.get("rejected"):
+                    print(f"    batches rejected (not fed): {r['rejected']:,.0f}", flush=True)
             else:  # `selfcal worker` processes keep their counters to themselves (no shared metrics folder here)
                 print("    refit cycles: counted in the worker processes, not in this /metrics", flush=True)
             if r.get("gc"):

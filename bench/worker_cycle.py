@@ -31,6 +31,32 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # pg_cluster
 
 
+def worn_state(cfg: dict, ch, i0: int, acc_only: bool = False) -> tuple[str, dict, int]:
+    """A calibrator fed the first ``i0`` samples of the simulated stream ``ch`` (``acc_only``:
+    without temperature and pressure, for a load that sends only g): (its state as JSON,
+    the feed bookkeeping a worker would have stored with it, its pose cells)."""
+    from selfcal.calibrator import OnlineCalibrator
+
+    cal = OnlineCalibrator(config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
+    for a in range(0, i0, 1_000_000):
+        b = min(i0, a + 1_000_000)
+        cal.feed_samples(ch.t_s[a:b], ch.acc_g[a:b], temp_c=None if acc_only else ch.temp_c[a:b],
+                         pressure_kpa=None if acc_only else ch.pressure_kpa[a:b])
+    feed = {"t_offset_s": 0.0, "last_t_s": float(ch.t_s[i0 - 1]), "first_t_s": float(ch.t_s[0]),
+            "first_seq": 0, "samples": i0}
+    return cal.to_json(), feed, len(cal.store)
+
+
+def preload(store, device_id: str, worn: tuple[str, dict, int]) -> None:
+    """Give a device (no batch fed yet) the worn state, as a cycle that fed the wear would
+    have written it."""
+    from selfcal_service.storage import Progress
+
+    store.commit_progress(Progress(
+        device_id=device_id, expected_processed_seq=None, processed_seq=None, samples_added=0,
+        calibrator_state=worn[0], calibrator_status="calibrated", last_refit=None, feed_state=worn[1])).result()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--devices", type=int, default=50)
@@ -60,14 +86,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"the simulation gave {len(ch.t_s) - i0} samples after the wear, {n} needed")
     worn = None
     if i0 > 0:  # one insole's state after the wear, given to every device as its checkpoint
-        cal = OnlineCalibrator(config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
-        for a in range(0, i0, 1_000_000):
-            b = min(i0, a + 1_000_000)
-            cal.feed_samples(ch.t_s[a:b], ch.acc_g[a:b], temp_c=ch.temp_c[a:b], pressure_kpa=ch.pressure_kpa[a:b])
-        feed = {"t_offset_s": 0.0, "last_t_s": float(ch.t_s[i0 - 1]), "first_t_s": float(ch.t_s[0]),
-                "first_seq": 0, "samples": i0}
-        worn = (cal.to_json(), feed)
-        print(f"worn {args.worn_days:g} days: {len(cal.store)} pose cells, state {len(worn[0]) / 1024:,.0f} KiB")
+        worn = worn_state(cfg, ch, i0)
+        print(f"worn {args.worn_days:g} days: {worn[2]} pose cells, state {len(worn[0]) / 1024:,.0f} KiB")
     modes = [int(x) for x in args.checkpoint_samples.split(",")]
     pg = None
     try:
@@ -95,7 +115,6 @@ def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db:
     from selfcal_service.metrics import Metrics
     from selfcal_service.schemas import Batch
     from selfcal_service.settings import load_settings
-    from selfcal_service.storage import Progress
     from selfcal_service.worker import CalibratorFactory
 
     timers = {"feed": 0.0, "to_json": 0.0}
@@ -134,11 +153,8 @@ def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db:
                                     pressure_kpa=ch.pressure_kpa[sl]).to_bytes()
                     store.submit_batch(f"dev{d:04d}", k, args.batch_samples, payload, time.time(),
                                        hashlib.sha256(payload).digest(), 10**6).result()
-                if worn is not None:  # the worn state, as a cycle that fed the wear would have written it
-                    store.commit_progress(Progress(
-                        device_id=f"dev{d:04d}", expected_processed_seq=None, processed_seq=None, samples_added=0,
-                        calibrator_state=worn[0], calibrator_status="calibrated", last_refit=None,
-                        feed_state=worn[1])).result()
+                if worn is not None:
+                    preload(store, f"dev{d:04d}", worn)
             OnlineCalibrator.feed_samples = timed("feed", feed0)
             OnlineCalibrator.to_json = to_json
             for d in range(args.devices):  # every device's calibrator restored (not timed)
