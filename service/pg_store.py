@@ -139,6 +139,11 @@ _WORKERS_SCHEMA = [
     "CREATE INDEX IF NOT EXISTS devices_leased ON devices (lease_owner) WHERE lease_owner IS NOT NULL",
 ]
 
+# a process of schema 3 still running against a migrated database (a rolling upgrade)
+# would read no state and publish from a fresh calibrator: its write fails instead
+_STATE_MOVED = ("ALTER TABLE devices ADD CONSTRAINT devices_state_in_checkpoints "
+                "CHECK (calibrator_state IS NULL)")
+
 _SCHEMA = [
     "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
     """CREATE TABLE IF NOT EXISTS devices (
@@ -186,6 +191,7 @@ _SCHEMA = [
     _INGEST_FUNCTION,
     _CHECKPOINTS_SCHEMA,
     *_WORKERS_SCHEMA,
+    _STATE_MOVED,
 ]
 
 #: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
@@ -199,6 +205,7 @@ MIGRATIONS: dict[int, list[str]] = {
         "calibrator_state, COALESCE(feed_state, '{}'), COALESCE(updated_at, created_at) FROM devices "
         "WHERE calibrator_state IS NOT NULL",
         "UPDATE devices SET calibrator_state = NULL WHERE calibrator_state IS NOT NULL",
+        _STATE_MOVED,
     ],
 }
 
@@ -337,6 +344,7 @@ class PostgresStore(GroupCommitStore):
                                            f"{SCHEMA_VERSION}; upgrade selfcal")
                     while version < SCHEMA_VERSION:
                         with conn.transaction():
+                            conn.execute("SET LOCAL statement_timeout = 0")  # a fleet's states may be moved
                             for stmt in MIGRATIONS[version]:
                                 conn.execute(stmt)
                             version += 1
@@ -404,11 +412,12 @@ class PostgresStore(GroupCommitStore):
             (device_id, -1 if after_seq is None else after_seq, -1 if upto_seq is None else upto_seq, limit))
         return [PendingBatch(r[0], r[1], r[2], bytes(r[3])) for r in rows]
 
-    def write_checkpoint(self, device_id: str, seq: int | None, state: str, feed_state: dict[str, Any]) -> bool:
+    def write_checkpoint(self, device_id: str, seq: int | None, state: str, feed_state: dict[str, Any],
+                         state_rev: int | None = None) -> bool:
         def op(conn: Any) -> bool:
-            row = conn.execute("SELECT processed_seq FROM devices WHERE device_id = %s FOR UPDATE",
+            row = conn.execute("SELECT processed_seq, state_rev FROM devices WHERE device_id = %s FOR UPDATE",
                                (device_id,)).fetchone()
-            if row is None or row[0] != seq:
+            if row is None or row[0] != seq or (state_rev is not None and row[1] != state_rev):
                 return False
             upsert_checkpoint(conn, "%s", device_id, seq, state, feed_state, time.time())
             return True

@@ -331,7 +331,8 @@ class SQLiteStore(GroupCommitStore):
         ).fetchall()
         return [PendingBatch(*r) for r in rows]
 
-    def write_checkpoint(self, device_id: str, seq: int | None, state: str, feed_state: dict[str, Any]) -> bool:
+    def write_checkpoint(self, device_id: str, seq: int | None, state: str, feed_state: dict[str, Any],
+                         state_rev: int | None = None) -> bool:  # (one process: no revision to check)
         def op(conn: sqlite3.Connection) -> bool:
             row = conn.execute("SELECT processed_seq FROM devices WHERE device_id = ?", (device_id,)).fetchone()
             if row is None or row[0] != seq:

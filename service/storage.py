@@ -282,7 +282,9 @@ def upsert_checkpoint(conn: Any, placeholder: str, device_id: str, seq: int | No
     conn.execute(
         f"INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) VALUES ({p}, {p}, {p}, {p}, {p}) "
         "ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state, "
-        "feed_state = excluded.feed_state, written_at = excluded.written_at",
+        "feed_state = excluded.feed_state, written_at = excluded.written_at "
+        # never an older state over a newer one
+        "WHERE checkpoints.seq IS NULL OR excluded.seq >= checkpoints.seq",
         (device_id, seq, state, dumps_json(feed_state), now))
 
 
@@ -347,10 +349,11 @@ class Storage(abc.ABC):
 
     @abc.abstractmethod
     def write_checkpoint(self, device_id: str, seq: int | None, state: str,
-                         feed_state: dict[str, Any]) -> bool:
+                         feed_state: dict[str, Any], state_rev: int | None = None) -> bool:
         """Write a calibrator state as the device's checkpoint at ``seq`` if the device's
-        ``processed_seq`` is still ``seq`` (else nothing: a newer cycle was committed);
-        True if written. Durable on return."""
+        ``processed_seq`` is still ``seq`` and (when given; PostgreSQL) its ``state_rev``
+        is still ``state_rev`` (else nothing: a newer cycle or an admin seed was
+        committed); True if written. Durable on return."""
 
     @abc.abstractmethod
     def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:

@@ -201,8 +201,8 @@ class RefitWorker:
         # calibrators kept in memory (0: every device fed); the least recently used beyond
         # it is written as a checkpoint if it is ahead of one, then dropped
         self.cache_max_devices = cache_max_devices
-        # devices whose cached calibrator is ahead of their checkpoint: (processed_seq, feed_state)
-        self._dirty: dict[str, tuple[int | None, dict[str, Any]]] = {}
+        # devices whose cached calibrator is ahead of their checkpoint: (processed_seq, state_rev, feed_state)
+        self._dirty: dict[str, tuple[int | None, int | None, dict[str, Any]]] = {}
         self.replays = 0
         self.busy = 0  # devices being processed right now
         self.cycles = 0
@@ -215,6 +215,7 @@ class RefitWorker:
         # devices a worker should hold: the fleet's leased and waiting devices per live worker
         self._share = lease.max_devices if lease is not None else 0
         self._waiting = 0  # devices with pending batches that no worker held (last heartbeat)
+        self._workers = 1  # live refit workers (last heartbeat)
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -301,21 +302,18 @@ class RefitWorker:
             except ConflictError as exc:  # another writer changed the device (shared database)
                 log.info("device %s: %s; cycle dropped", device_id, exc)
                 self.conflicts += 1
-                self.metrics.inc("selfcal_worker_conflicts_total")
-                self._forget(device_id)
+                self.metrics.inc("selfcal_worker_conflicts_total")  # (_process dropped its calibrator)
                 more = False
             except StorageUnavailable as exc:  # a storage fault: no traceback, wait it out
                 if backoff_s == 0.5:
                     log.warning("refits paused: %s", exc)
                 self.metrics.inc("selfcal_worker_errors_total")
-                self._forget(device_id)
                 more = True
                 self._stop.wait(backoff_s)
                 backoff_s = min(5.0, 2 * backoff_s)
             except Exception:
                 log.exception("refit cycle failed for device %s", device_id)
                 self.metrics.inc("selfcal_worker_errors_total")
-                self._forget(device_id)
                 more = True
                 self._stop.wait(0.5)  # back off, then retry from the persisted state
             finally:
@@ -348,9 +346,12 @@ class RefitWorker:
         other devices are written as checkpoints (if ahead) and dropped."""
         self._cache[device_id] = (key, cal)
         self._cache.move_to_end(device_id)
-        if self.cache_max_devices <= 0:
+        # with leases, twice the leases held at most (a worker keeps the calibrators it gave
+        # up, for when it takes the device again)
+        cap = self.cache_max_devices or (2 * self.lease.max_devices if self.lease is not None else 0)
+        if cap <= 0:
             return
-        for other in list(self._cache)[: max(0, len(self._cache) - self.cache_max_devices)]:
+        for other in list(self._cache)[: max(0, len(self._cache) - cap)]:
             if other == device_id:
                 continue
             lock = self.device_lock(other)
@@ -415,21 +416,30 @@ class RefitWorker:
         base = rec.checkpoint.feed_state.get("samples", 0) if rec.checkpoint is not None else 0
         return int(feed.get("samples", 0)) - int(base or 0)
 
-    def flush_checkpoints(self) -> int:
-        """Write the cached calibrators that are ahead of their checkpoint (at a stop, or
-        before a lease is given up); returns how many were written."""
+    def flush_checkpoints(self, lock_timeout_s: float = 5.0) -> int:
+        """Write the cached calibrators that are ahead of their checkpoint (at a stop);
+        returns how many were written. A device whose cycle still runs is left to a replay."""
         written = 0
         for device_id in list(self._dirty):
-            written += self._checkpoint_now(device_id)
+            lock = self.device_lock(device_id)
+            if lock.acquire(timeout=lock_timeout_s):
+                try:
+                    written += self._checkpoint_now(device_id)
+                finally:
+                    lock.release()
         return written
 
     def _checkpoint_now(self, device_id: str) -> bool:
+        """Write the cached calibrator of a device (the caller holds its lock) if it is
+        ahead of the checkpoint, and nothing was committed for the device since it was
+        cached (the store checks the seq and, on PostgreSQL, the state revision)."""
         dirty = self._dirty.pop(device_id, None)
         cached = self._cache.get(device_id)
-        if dirty is None or cached is None or cached[0][0] != dirty[0]:
+        if dirty is None or cached is None or cached[0] != (dirty[0], dirty[1]):
             return False
         try:
-            return self.store.write_checkpoint(device_id, dirty[0], cached[1].to_json(), dirty[1])
+            return self.store.write_checkpoint(device_id, dirty[0], cached[1].to_json(), dirty[2],
+                                               state_rev=dirty[1])
         except Exception as exc:  # noqa: BLE001 - the next restore replays instead
             log.warning("device %s: checkpoint not written (%s); a restore replays", device_id, exc)
             return False
@@ -475,87 +485,97 @@ class RefitWorker:
 
     def _process(self, device_id: str) -> bool:
         with self.device_lock(device_id):
-            if self.lease is not None and device_id not in self._leased:
-                return False  # given up meanwhile (its share moved to another worker)
-            if self.min_cycle_interval_s > 0:  # let batches gather: one state write for several
-                last = self._last_cycle.get(device_id)
-                wait = 0.0 if last is None else last + self.min_cycle_interval_s - time.monotonic()
-                if wait > 0:
-                    self._hold(device_id, wait)
-                    return False
-            rec = self.store.load_device(device_id, with_state=False)
-            if rec is None:
-                return False
-            rows = self.store.pending_batches(device_id, self.max_batches)
-            if not rows:
-                return False
-            now = time.time()
-            take, late, held = self._plan(rec, rows, now)
-            if held:
-                oldest = min(x.received_at for x in held)
-                self._hold(device_id, max(0.05, oldest + self.reorder_window_s - now))
-            if not take and not late:
-                return False
-            rejected = [(r.seq, r.n_samples, f"late: seq {r.seq} arrived after seq {rec.processed_seq} "
-                         f"was fed (reorder window {self.reorder_window_s:g} s)") for r in late]
-            cal = self._calibrator(rec)
-            feed = dict(rec.feed_state)
-            batches = [(r.seq, decode_binary(r.payload)) for r in take]
             try:
-                events, samples = self._feed(cal, batches, feed, rec)
-                fed = [q for q, _ in batches]
-            except Exception:
-                log.warning("device %s: calibrator raised; feeding batch by batch", device_id, exc_info=True)
-                cal = self._restore(rec)
-                feed = dict(rec.feed_state)
-                events, samples, cal, fed, refused = self._feed_isolating(cal, batches, feed, rec)
-                rejected += refused
-            if take:
-                feed["handled_seq"] = max(take[-1].seq, int(feed.get("handled_seq", -1)))
-            versions = self._versions(cal, events, feed)
-            last_refit = jsonable(getattr(cal, "last_refit", None))
-            checkpoint = self.checkpoint_samples <= 0 or \
-                self._samples_since_checkpoint(rec, feed) >= self.checkpoint_samples
-            progress = Progress(
-                device_id=device_id,
-                expected_processed_seq=rec.processed_seq,
-                processed_seq=max(fed, default=rec.processed_seq),  # fed seqs are all above it
-                samples_added=samples,
-                calibrator_state=cal.to_json() if checkpoint else None,
-                calibrator_status=str(cal.status),
-                last_refit=last_refit,
-                feed_state=feed,
-                new_versions=versions,
-                fed_seqs=fed,
-                rejected=rejected,
-                refusals=refusals_of(events, rejected),
-                expected_state_rev=rec.state_rev,
-                lease_owner=self.lease.owner if self.lease is not None else None,
-            )
-            self.store.commit_progress(progress).result()  # durable before caching
-            rev = None if rec.state_rev is None else rec.state_rev + 1
-            self._keep(device_id, (progress.processed_seq, rev), cal)
-            if checkpoint:
-                self._dirty.pop(device_id, None)
-                self.metrics.inc("selfcal_worker_checkpoints_total")
-            else:
-                self._dirty[device_id] = (progress.processed_seq, feed)
-            self.cycles += 1
-            more = len(rows) >= self.max_batches
-            if more:
-                self._last_cycle.pop(device_id, None)  # a backlog is worked off without waiting
-            else:
-                self._last_cycle[device_id] = time.monotonic()
-            self.metrics.inc("selfcal_worker_samples_total", samples)
-            self.metrics.inc("selfcal_worker_cycles_total")
-            for _, n, reason in rejected:
-                kind = reason.split(":", 1)[0]
-                self.metrics.inc("selfcal_rejected_batches_total", reason=kind)
-                self.metrics.inc("selfcal_rejected_samples_total", n, reason=kind)
-            for ev in events:
-                outcome = "published" if ev.get("published") else str(ev.get("reason") or "unknown")
-                self.metrics.inc("selfcal_refits_total", outcome=outcome)
-            return more
+                return self._process_locked(device_id)
+            except BaseException:
+                # the cached calibrator may have been fed batches that were not committed:
+                # dropped before any other thread can take the lock (and write or seed it)
+                self._forget(device_id)
+                raise
+
+    def _process_locked(self, device_id: str) -> bool:
+        if self.lease is not None and device_id not in self._leased:
+            return False  # given up meanwhile (its share moved to another worker)
+        if self.min_cycle_interval_s > 0:  # let batches gather: one state write for several
+            last = self._last_cycle.get(device_id)
+            wait = 0.0 if last is None else last + self.min_cycle_interval_s - time.monotonic()
+            if wait > 0:
+                self._hold(device_id, wait)
+                return False
+        rec = self.store.load_device(device_id, with_state=False)
+        if rec is None:
+            return False
+        rows = self.store.pending_batches(device_id, self.max_batches)
+        if not rows:
+            return False
+        now = time.time()
+        take, late, held = self._plan(rec, rows, now)
+        if held:
+            oldest = min(x.received_at for x in held)
+            self._hold(device_id, max(0.05, oldest + self.reorder_window_s - now))
+        if not take and not late:
+            return False
+        rejected = [(r.seq, r.n_samples, f"late: seq {r.seq} arrived after seq {rec.processed_seq} "
+                     f"was fed (reorder window {self.reorder_window_s:g} s)") for r in late]
+        cal = self._calibrator(rec)
+        feed = dict(rec.feed_state)
+        batches = [(r.seq, decode_binary(r.payload)) for r in take]
+        try:
+            events, samples = self._feed(cal, batches, feed, rec)
+            fed = [q for q, _ in batches]
+        except Exception:
+            log.warning("device %s: calibrator raised; feeding batch by batch", device_id, exc_info=True)
+            cal = self._restore(rec)
+            feed = dict(rec.feed_state)
+            events, samples, cal, fed, refused = self._feed_isolating(cal, batches, feed, rec)
+            rejected += refused
+        if take:
+            feed["handled_seq"] = max(take[-1].seq, int(feed.get("handled_seq", -1)))
+        versions = self._versions(cal, events, feed)
+        last_refit = jsonable(getattr(cal, "last_refit", None))
+        more = len(rows) >= self.max_batches
+        checkpoint = self.checkpoint_samples <= 0 or \
+            self._samples_since_checkpoint(rec, feed) >= self.checkpoint_samples or \
+            self._will_hand_over(device_id, more, bool(held))
+        progress = Progress(
+            device_id=device_id,
+            expected_processed_seq=rec.processed_seq,
+            processed_seq=max(fed, default=rec.processed_seq),  # fed seqs are all above it
+            samples_added=samples,
+            calibrator_state=cal.to_json() if checkpoint else None,
+            calibrator_status=str(cal.status),
+            last_refit=last_refit,
+            feed_state=feed,
+            new_versions=versions,
+            fed_seqs=fed,
+            rejected=rejected,
+            refusals=refusals_of(events, rejected),
+            expected_state_rev=rec.state_rev,
+            lease_owner=self.lease.owner if self.lease is not None else None,
+        )
+        self.store.commit_progress(progress).result()  # durable before caching
+        rev = None if rec.state_rev is None else rec.state_rev + 1
+        self._keep(device_id, (progress.processed_seq, rev), cal)
+        if checkpoint:
+            self._dirty.pop(device_id, None)
+            self.metrics.inc("selfcal_worker_checkpoints_total")
+        else:
+            self._dirty[device_id] = (progress.processed_seq, rev, feed)
+        self.cycles += 1
+        if more:
+            self._last_cycle.pop(device_id, None)  # a backlog is worked off without waiting
+        else:
+            self._last_cycle[device_id] = time.monotonic()
+        self.metrics.inc("selfcal_worker_samples_total", samples)
+        self.metrics.inc("selfcal_worker_cycles_total")
+        for _, n, reason in rejected:
+            kind = reason.split(":", 1)[0]
+            self.metrics.inc("selfcal_rejected_batches_total", reason=kind)
+            self.metrics.inc("selfcal_rejected_samples_total", n, reason=kind)
+        for ev in events:
+            outcome = "published" if ev.get("published") else str(ev.get("reason") or "unknown")
+            self.metrics.inc("selfcal_refits_total", outcome=outcome)
+        return more
 
     def _hold(self, device_id: str, delay_s: float) -> None:
         """Look at a device again after ``delay_s`` (batches held for the reorder window)."""
@@ -721,6 +741,7 @@ class RefitWorker:
                     workers, leased, waiting = self.store.heartbeat(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
                     self._share = max(1, math.ceil((leased + waiting) / max(1, workers)))
                     self._waiting = waiting
+                    self._workers = workers
                     last_renew = now
                 room = min(lease.max_devices, self._share) - len(self._leased)
                 if room <= 0:
@@ -742,6 +763,14 @@ class RefitWorker:
             except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
                 log.warning("leases: %s", exc)
                 self._stop.wait(lease.poll_s)
+
+    def _will_hand_over(self, device_id: str, more: bool, held: bool) -> bool:
+        """Whether this cycle ends by giving the device up while other live workers may
+        take it next (the workers are behind: ``_loop``): its state is then written in
+        the cycle's own commit, so that the next holder restores it without a replay."""
+        if self.lease is None or more or held or self._workers < 2:
+            return False
+        return len(self._leased) > self._keep_cap()
 
     def _keep_cap(self) -> int:
         """Devices this worker may keep leased between batches: its share of the fleet's
@@ -765,30 +794,43 @@ class RefitWorker:
         now = time.monotonic()
         idle = sorted(self._idle.items(), key=lambda kv: kv[1])
         # beyond the share of the fleet's active devices per live worker, or when the room
-        # is needed, idle devices go first: other workers take them with their next batch
+        # is needed, idle devices go first: other workers take them with their next batch.
+        # A pass stops after a sixth of the lease time (checkpoint writes can be slow), so
+        # that the renewals are never late
         spare = len(self._leased) - self._keep_cap()
         for device_id, since in idle:
+            if time.monotonic() - now > lease.ttl_s / 6:
+                break
             if spare > 0 or now - since >= lease.idle_s:
-                if self._release(device_id):
+                if self._release(device_id, wait=False):
                     spare -= 1
 
-    def _release(self, device_id: str, force: bool = False, checkpoint: bool = True) -> bool:
+    def _release(self, device_id: str, force: bool = False, checkpoint: bool = True, wait: bool = True) -> bool:
         """Give a lease up (``force``: whether idle or not) unless the device has work
         again; with ``checkpoint`` its calibrator is written first if it is ahead of its
         checkpoint. The cached calibrator stays: it is used again if this worker is the
         next to take the device (the state revision tells)."""
-        with self.device_lock(device_id):
+        lock = self.device_lock(device_id)
+        if not lock.acquire(blocking=wait):
+            return False  # in a cycle (or an admin write) right now: looked at again later
+        try:
             if not force and self._idle.pop(device_id, None) is None:
                 return False  # enqueued again meanwhile
             self._idle.pop(device_id, None)
             if checkpoint:
                 self._checkpoint_now(device_id)  # the next holder restores it without a replay
-            self._leased.discard(device_id)
             try:
                 self.store.release_lease(self.lease.owner, device_id)  # type: ignore[union-attr, attr-defined]
-            except Exception as exc:  # noqa: BLE001 - it expires anyway
+            except Exception as exc:  # noqa: BLE001
+                if not self._stop.is_set():  # still renewed: kept, and given up at a later pass
+                    log.info("device %s: lease not released (%s); tried again", device_id, exc)
+                    self._idle[device_id] = 0.0
+                    return False
                 log.info("device %s: lease not released (%s); it expires", device_id, exc)
+            self._leased.discard(device_id)
             return True
+        finally:
+            lock.release()
 
     # ------------------------------------------------------------ admin
     def publish_admin(
@@ -804,59 +846,62 @@ class RefitWorker:
         for attempt in range(5):  # on a shared database a worker elsewhere may commit first
             try:
                 return self._publish_admin_once(device_id, version, seed, timeout_s)
-            except ConflictError:
-                self._forget(device_id)
+            except ConflictError:  # (the calibrator was dropped under the device lock)
                 if attempt == 4:
                     raise
                 time.sleep(0.05 * (attempt + 1))
-            except BaseException:
-                # the seed went into the cached calibrator before the commit: a write that
-                # failed must not reach a later refit through the cache
-                self._forget(device_id)
-                raise
         raise AssertionError("unreachable")  # pragma: no cover
 
     def _publish_admin_once(
         self, device_id: str, version: NewVersion, seed: dict[str, Any] | None, timeout_s: float
     ) -> int:
         with self.device_lock(device_id):
-            rec = self.store.load_device(device_id, with_state=False)
-            expected = rec.processed_seq if rec else None
-            cal: Calibrator | None = None
-            if seed is not None and hasattr(self.factory.cls, "seed_calibration"):
-                cal = self._calibrator(rec) if rec else self.factory.create()
-                params = seed.get("params")
-                if not params:
-                    theta = cal.model.from_linear(np.asarray(seed["matrix"]), np.asarray(seed["offset"]))
-                    params = cal.model.to_dict(theta)
-                std = {k: v for k, v in (seed.get("std") or {}).items() if v is not None}
-                t_s = float((rec.feed_state.get("last_t_s") if rec else None) or 0.0)
-                cal.seed_calibration(params, std or None, t_s=t_s)
-                if version.source == "factory":
-                    calib = jsonable(cal.calibration())
-                    calib.pop("version", None)
-                    calib["source"] = "factory"
-                    status = str(cal.status) if cal.status != "uncalibrated" else "provisional"
-                    version = NewVersion(status, version.source, calib, version.provenance)
-            progress = Progress(
-                device_id=device_id,
-                expected_processed_seq=expected,
-                processed_seq=expected,
-                samples_added=0,
-                calibrator_state=cal.to_json() if cal is not None else None,  # None: the checkpoint stays
-                calibrator_status=str(cal.status) if cal is not None else (rec.calibrator_status if rec else None),
-                last_refit=rec.last_refit if rec else None,
-                feed_state=rec.feed_state if rec else {},
-                new_versions=[version],
-                expected_state_rev=rec.state_rev if rec else None,
-            )
-            numbers = self.store.commit_progress(progress).result(timeout=timeout_s)
-            rev = rec.state_rev + 1 if rec is not None and rec.state_rev is not None else None
-            if cal is not None:
-                self._keep(device_id, (expected, rev), cal)
-                self._dirty.pop(device_id, None)
-            else:  # the calibrator did not change: what is cached stays valid
-                cached = self._cache.get(device_id)
-                if cached is not None and rec is not None and cached[0] == (expected, rec.state_rev):
-                    self._keep(device_id, (expected, rev), cached[1])
-            return numbers[-1]
+            try:
+                return self._publish_admin_locked(device_id, version, seed, timeout_s)
+            except BaseException:
+                self._forget(device_id)  # the seed may be in the cached calibrator, uncommitted
+                raise
+
+    def _publish_admin_locked(
+        self, device_id: str, version: NewVersion, seed: dict[str, Any] | None, timeout_s: float
+    ) -> int:
+        rec = self.store.load_device(device_id, with_state=False)
+        expected = rec.processed_seq if rec else None
+        cal: Calibrator | None = None
+        if seed is not None and hasattr(self.factory.cls, "seed_calibration"):
+            cal = self._calibrator(rec) if rec else self.factory.create()
+            params = seed.get("params")
+            if not params:
+                theta = cal.model.from_linear(np.asarray(seed["matrix"]), np.asarray(seed["offset"]))
+                params = cal.model.to_dict(theta)
+            std = {k: v for k, v in (seed.get("std") or {}).items() if v is not None}
+            t_s = float((rec.feed_state.get("last_t_s") if rec else None) or 0.0)
+            cal.seed_calibration(params, std or None, t_s=t_s)
+            if version.source == "factory":
+                calib = jsonable(cal.calibration())
+                calib.pop("version", None)
+                calib["source"] = "factory"
+                status = str(cal.status) if cal.status != "uncalibrated" else "provisional"
+                version = NewVersion(status, version.source, calib, version.provenance)
+        progress = Progress(
+            device_id=device_id,
+            expected_processed_seq=expected,
+            processed_seq=expected,
+            samples_added=0,
+            calibrator_state=cal.to_json() if cal is not None else None,  # None: the checkpoint stays
+            calibrator_status=str(cal.status) if cal is not None else (rec.calibrator_status if rec else None),
+            last_refit=rec.last_refit if rec else None,
+            feed_state=rec.feed_state if rec else {},
+            new_versions=[version],
+            expected_state_rev=rec.state_rev if rec else None,
+        )
+        numbers = self.store.commit_progress(progress).result(timeout=timeout_s)
+        rev = rec.state_rev + 1 if rec is not None and rec.state_rev is not None else None
+        if cal is not None:
+            self._keep(device_id, (expected, rev), cal)
+            self._dirty.pop(device_id, None)
+        else:  # the calibrator did not change: what is cached stays valid
+            cached = self._cache.get(device_id)
+            if cached is not None and rec is not None and cached[0] == (expected, rec.state_rev):
+                self._keep(device_id, (expected, rev), cached[1])
+        return numbers[-1]

@@ -223,3 +223,61 @@ def test_a_bounded_cache_writes_the_calibrators_it_drops_and_restores_them_the_s
     finally:
         store.close()
         ref_store.close()
+
+
+def test_a_cycle_whose_commit_fails_leaves_no_calibrator_behind(tmp_path, stream):
+    """The cached calibrator is fed before the commit: when the commit fails it is dropped
+    while the device lock is still held (nothing can write or seed it), and the next cycle
+    restores the device and feeds the batch once."""
+    from selfcal_service.storage import StorageUnavailable
+
+    cfg, batches = stream
+    store = _open(backend_db(tmp_path / "fail.db"))
+    try:
+        _ingest(store, batches[:2])
+        worker = _worker(store, cfg, checkpoint_samples=10**6)
+        worker.process("ins")
+        assert "ins" in worker._cache and "ins" in worker._dirty
+        commit = store.commit_progress
+
+        def failing(progress):
+            raise StorageUnavailable("the database went away (test)")
+
+        store.commit_progress = failing
+        with pytest.raises(StorageUnavailable):
+            worker.process("ins")
+        assert "ins" not in worker._cache and "ins" not in worker._dirty
+        store.commit_progress = commit
+        worker.process("ins")
+        rec = store.load_device("ins", with_state=False)
+        assert rec.processed_seq == 1 and rec.samples_processed == 2 * N and rec.feed_state["samples"] == 2 * N
+        assert worker.replays == 1  # batch 0, fed again after the restore; batch 1 once
+    finally:
+        store.close()
+
+
+@pytest.mark.skipif(__import__("service_helpers").backend() != "postgresql",
+                    reason="PostgreSQL scale-out (runs in the SELFCAL_TEST_BACKEND=postgresql pass)")
+def test_a_worker_whose_device_was_seeded_elsewhere_does_not_write_its_older_state(tmp_path, stream):
+    """On a shared database an admin seed in another process writes the device's state at
+    the same seq with a new revision; a worker's cached (unseeded) calibrator must not be
+    written over it when it gives the device up."""
+    cfg, batches = stream
+    store = _open(backend_db(tmp_path / "seeded.db"))
+    try:
+        _ingest(store, batches[:2])
+        worker = _worker(store, cfg, checkpoint_samples=10**6)
+        _drain(worker)
+        rec = store.load_device("ins", with_state=False)
+        assert rec.checkpoint is None and "ins" in worker._dirty
+        other = _worker(store, cfg, checkpoint_samples=10**6)  # the admin's process
+        from selfcal_service.storage import NewVersion
+
+        other.publish_admin("ins", NewVersion("provisional", "factory", {}, {}),
+                            seed={"matrix": np.eye(3).tolist(), "offset": [0.01, 0.0, 0.0]})
+        seeded = store.load_device("ins")
+        assert seeded.checkpoint.seq == 1 and seeded.state_rev == rec.state_rev + 1
+        assert worker.flush_checkpoints() == 0  # refused: the revision moved on
+        assert store.load_device("ins").calibrator_state == seeded.calibrator_state
+    finally:
+        store.close()

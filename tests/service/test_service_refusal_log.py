@@ -94,6 +94,8 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
         conn.execute("DROP TABLE refusals")
         conn.execute("DROP FUNCTION selfcal_ingest")  # v3's one-round-trip ingest
         conn.execute("DROP TABLE checkpoints")  # v4: the state in devices.calibrator_state until then
+        conn.execute("DROP TABLE workers")
+        conn.execute("ALTER TABLE devices DROP CONSTRAINT devices_state_in_checkpoints")
         conn.execute("INSERT INTO devices(device_id, created_at, processed_seq, calibrator_state, feed_state) "
                      "VALUES ('dev-s', 0, 4, '{\"s\": 1}', '{\"samples\": 100}')")
         conn.execute("UPDATE meta SET value = '1' WHERE key = 'schema_version'")
@@ -115,6 +117,8 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
     with psycopg.connect(url, autocommit=True) as conn:
         assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == str(SCHEMA_VERSION)
         assert conn.execute("SELECT calibrator_state FROM devices WHERE device_id = 'dev-s'").fetchone() == (None,)
+        with pytest.raises(psycopg.errors.CheckViolation):  # a schema-3 process cannot write a state there
+            conn.execute("UPDATE devices SET calibrator_state = '{}' WHERE device_id = 'dev-s'")
     assert SCHEMA_VERSION == 4
 
 
