@@ -67,6 +67,19 @@ def _drain(worker) -> int:
     return cycles + 1
 
 
+def _fed(db_path, stream, n_batches: int):
+    """A store with the first ``n_batches`` fed by a worker that writes no checkpoint yet:
+    (store, worker, the device's record)."""
+    cfg, batches = stream
+    store = _open(backend_db(db_path))
+    _ingest(store, batches[:n_batches])
+    worker = _worker(store, cfg, checkpoint_samples=10**6)
+    _drain(worker)
+    rec = store.load_device("ins", with_state=False)
+    assert rec.processed_seq == n_batches - 1 and rec.checkpoint is None  # nothing written yet
+    return store, worker, rec
+
+
 def _versions(store):
     return [(v.status, v.calibration, v.provenance.get("seq_range")) for v in store.history("ins")]
 
@@ -131,14 +144,8 @@ def test_a_worker_that_restores_from_a_checkpoint_publishes_what_one_that_never_
 def test_a_checkpoint_is_not_written_over_a_newer_cycle(tmp_path, stream):
     """``write_checkpoint`` at a seq the device has moved past writes nothing (a slow
     worker must not put an old state over a newer one)."""
-    cfg, batches = stream
-    store = _open(backend_db(tmp_path / "stale.db"))
+    store, worker, _ = _fed(tmp_path / "stale.db", stream, 3)
     try:
-        _ingest(store, batches[:3])
-        worker = _worker(store, cfg, checkpoint_samples=10**6)
-        _drain(worker)
-        rec = store.load_device("ins", with_state=False)
-        assert rec.processed_seq == 2 and rec.checkpoint is None  # nothing written yet
         assert not store.write_checkpoint("ins", 1, "{}", {})
         assert store.load_device("ins").checkpoint is None
         assert worker.flush_checkpoints() == 1
@@ -262,15 +269,10 @@ def test_a_worker_whose_device_was_seeded_elsewhere_does_not_write_its_older_sta
     """On a shared database an admin seed in another process writes the device's state at
     the same seq with a new revision; a worker's cached (unseeded) calibrator must not be
     written over it when it gives the device up."""
-    cfg, batches = stream
-    store = _open(backend_db(tmp_path / "seeded.db"))
+    store, worker, rec = _fed(tmp_path / "seeded.db", stream, 2)
     try:
-        _ingest(store, batches[:2])
-        worker = _worker(store, cfg, checkpoint_samples=10**6)
-        _drain(worker)
-        rec = store.load_device("ins", with_state=False)
-        assert rec.checkpoint is None and "ins" in worker._dirty
-        other = _worker(store, cfg, checkpoint_samples=10**6)  # the admin's process
+        assert "ins" in worker._dirty
+        other = _worker(store, stream[0], checkpoint_samples=10**6)  # the admin's process
         from selfcal_service.storage import NewVersion
 
         other.publish_admin("ins", NewVersion("provisional", "factory", {}, {}),
