@@ -346,9 +346,9 @@ class RefitWorker:
         other devices are written as checkpoints (if ahead) and dropped."""
         self._cache[device_id] = (key, cal)
         self._cache.move_to_end(device_id)
-        # with leases, twice the leases held at most (a worker keeps the calibrators it gave
-        # up, for when it takes the device again)
-        cap = self.cache_max_devices or (2 * self.lease.max_devices if self.lease is not None else 0)
+        # (not bounded by default, with leases too: a worker behind its fleet takes every
+        # device in turn, and a bound below the fleet would restore and replay at each turn)
+        cap = self.cache_max_devices
         if cap <= 0:
             return
         for other in list(self._cache)[: max(0, len(self._cache) - cap)]:
