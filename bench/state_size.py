@@ -1,11 +1,13 @@
-"""What the refit worker writes to the database at every cycle: one device's calibrator state.
+"""What the refit worker writes to the database with a checkpoint: one device's calibrator state.
 
-The service persists a device's whole calibrator state (``OnlineCalibrator.to_json``) with
-every cycle that feeds it a batch, in the same transaction as the batch's progress, so
+The service persists a device's whole calibrator state (``OnlineCalibrator.to_json``) as
+its checkpoint, in the transaction of the cycle that brings the samples fed since the
+last one to ``[service] checkpoint_samples`` (0: every cycle, as before checkpoints), so
 that a restarted or replacing worker resumes exactly. This prints, for one simulated
 insole fed its still windows day by day (the replay's poses level, seed ``--seed``), the
 state's size and what it holds (pose store, detector, the rest), the time to serialise
-and to restore it, and what that means for a fleet at one cycle per device per batch.
+and to restore it, and what that means for a fleet if it were written at one cycle per
+device per batch (``checkpoint_samples = 0``).
 
     python bench/state_size.py [--days 1,3,7,14,30] [--devices 10000] [--batch-s 20]
 """

@@ -210,7 +210,6 @@ MIGRATIONS: dict[int, list[str]] = {
 }
 
 _COLS = [*DEVICE_COLUMNS, "state_rev"]
-_DEVICE_COLS = ", ".join(f"d.{c}" for c in _COLS)
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in _COLS)  # no state
 # what the worker loads: the state comes from the checkpoint (devices.calibrator_state is unused since v4)
 _LOAD_COLS_STATE = ", ".join("c.state" if c == "calibrator_state" else f"d.{c}" for c in _COLS)

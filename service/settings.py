@@ -49,9 +49,9 @@ class Settings(BaseModel):
     )
     min_cycle_interval_s: float = Field(
         0.0, ge=0, le=3600,
-        description="a device's batches are fed at most once per this many seconds (0: as they come); every cycle "
-                    "writes the device's whole calibrator state, so a fleet at steady state wants 60-300 s "
-                    "(bench/state_size.py); a device with a backlog is not held",
+        description="a device's batches are fed at most once per this many seconds (0: as they come): one commit "
+                    "for the batches that arrive meanwhile (the state itself is written per checkpoint_samples); "
+                    "a device with a backlog is not held",
     )
     checkpoint_samples: int = Field(
         12_000, ge=0, le=10_000_000,

@@ -55,6 +55,15 @@ log = logging.getLogger("selfcal.service.sqlite")
 
 SCHEMA_VERSION = 4
 
+# the calibrator state, written every checkpoint_samples rather than every cycle (v4)
+_CHECKPOINTS_DDL = """CREATE TABLE IF NOT EXISTS checkpoints (
+    device_id  TEXT PRIMARY KEY,
+    seq        INTEGER,
+    state      TEXT NOT NULL,
+    feed_state TEXT NOT NULL,
+    written_at REAL NOT NULL
+)"""
+
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
     key   TEXT PRIMARY KEY,
@@ -109,14 +118,7 @@ CREATE TABLE IF NOT EXISTS refusals (
     seq       INTEGER
 );
 CREATE INDEX IF NOT EXISTS refusals_device ON refusals (device_id, id);
-CREATE TABLE IF NOT EXISTS checkpoints (
-    device_id  TEXT PRIMARY KEY,
-    seq        INTEGER,
-    state      TEXT NOT NULL,
-    feed_state TEXT NOT NULL,
-    written_at REAL NOT NULL
-);
-"""
+""" + _CHECKPOINTS_DDL + ";\n"
 
 #: Batch states: pending, fed to the calibrator once, rejected with a reason.
 PENDING, FED, REJECTED = 0, 1, 2
@@ -150,8 +152,7 @@ MIGRATIONS = {
     # rather than every cycle (devices.calibrator_state stays, always NULL: a row update
     # would rewrite the megabyte of state with it)
     3: [
-        "CREATE TABLE IF NOT EXISTS checkpoints (device_id TEXT PRIMARY KEY, seq INTEGER, state TEXT NOT NULL, "
-        "feed_state TEXT NOT NULL, written_at REAL NOT NULL)",
+        _CHECKPOINTS_DDL,
         "INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) SELECT device_id, processed_seq, "
         "calibrator_state, COALESCE(feed_state, '{}'), COALESCE(updated_at, created_at) FROM devices "
         "WHERE calibrator_state IS NOT NULL",
@@ -159,13 +160,11 @@ MIGRATIONS = {
     ],
 }
 
-_DEVICE_COLS = ", ".join(DEVICE_COLUMNS)
 _N_DEVICE_COLS = len(DEVICE_COLUMNS)
 # what the read routes select: every device column but the calibrator state, which can be
 # a megabyte for a device worn for weeks (thousands of pose cells) and no read needs
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in DEVICE_COLUMNS)
 # what the worker loads: the state comes from the checkpoint (devices.calibrator_state is unused since v4)
-_LOAD_COLS = _DEVICE_READ_COLS
 _LOAD_COLS_STATE = ", ".join("c.state" if c == "calibrator_state" else f"d.{c}" for c in DEVICE_COLUMNS)
 # the dashboard's page of devices: JSON1's json_extract reads the served calibration's figures
 _FLEET_SQL = fleet_select(lambda key: f"json_extract(v.calibration, '$.{key}')",
@@ -316,7 +315,7 @@ class SQLiteStore(GroupCommitStore):
 
     def load_device(self, device_id: str, with_state: bool = True) -> DeviceRecord | None:
         row = self._reader().execute(
-            f"SELECT {_LOAD_COLS_STATE if with_state else _LOAD_COLS}, c.device_id IS NOT NULL, c.seq, c.feed_state "
+            f"SELECT {_LOAD_COLS_STATE if with_state else _DEVICE_READ_COLS}, c.device_id IS NOT NULL, c.seq, c.feed_state "
             "FROM devices d LEFT JOIN checkpoints c ON c.device_id = d.device_id WHERE d.device_id = ?",
             (device_id,),
         ).fetchone()

@@ -496,7 +496,7 @@ class RefitWorker:
     def _process_locked(self, device_id: str) -> bool:
         if self.lease is not None and device_id not in self._leased:
             return False  # given up meanwhile (its share moved to another worker)
-        if self.min_cycle_interval_s > 0:  # let batches gather: one state write for several
+        if self.min_cycle_interval_s > 0:  # let batches gather: one commit for several
             last = self._last_cycle.get(device_id)
             wait = 0.0 if last is None else last + self.min_cycle_interval_s - time.monotonic()
             if wait > 0:
@@ -536,7 +536,7 @@ class RefitWorker:
         more = len(rows) >= self.max_batches
         checkpoint = self.checkpoint_samples <= 0 or \
             self._samples_since_checkpoint(rec, feed) >= self.checkpoint_samples or \
-            self._will_hand_over(device_id, more, bool(held))
+            self._will_hand_over(more, bool(held))
         progress = Progress(
             device_id=device_id,
             expected_processed_seq=rec.processed_seq,
@@ -764,7 +764,7 @@ class RefitWorker:
                 log.warning("leases: %s", exc)
                 self._stop.wait(lease.poll_s)
 
-    def _will_hand_over(self, device_id: str, more: bool, held: bool) -> bool:
+    def _will_hand_over(self, more: bool, held: bool) -> bool:
         """Whether this cycle ends by giving the device up while other live workers may
         take it next (the workers are behind: ``_loop``): its state is then written in
         the cycle's own commit, so that the next holder restores it without a replay."""
@@ -814,9 +814,9 @@ class RefitWorker:
         if not lock.acquire(blocking=wait):
             return False  # in a cycle (or an admin write) right now: looked at again later
         try:
-            if not force and self._idle.pop(device_id, None) is None:
+            was_idle = self._idle.pop(device_id, None) is not None
+            if not force and not was_idle:
                 return False  # enqueued again meanwhile
-            self._idle.pop(device_id, None)
             if checkpoint:
                 self._checkpoint_now(device_id)  # the next holder restores it without a replay
             try:
