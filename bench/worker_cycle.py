@@ -3,7 +3,8 @@
 ``D`` devices each get ``K`` batches of ``B`` samples of simulated 20 Hz insole wear
 (stored as the API stores them), then the worker (``selfcal_service.main.make_worker``,
 the real calibrator) feeds them one batch a cycle, device after device, as a worker that
-keeps up does. Printed: ms a cycle and samples/s, the share of the cycle spent in the
+keeps up does. Printed: ms a cycle and samples/s, the CPU a cycle costs (this process,
+and the whole machine: PostgreSQL's server runs beside it), the share of the cycle spent in the
 calibrator's feed, in serialising its state, and in the database commit, the state
 written per cycle, and what a fresh worker's restore of a device costs (its checkpoint,
 then the batches fed since, again). ``--worn-days`` starts every device from the state of
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import os
 import sys
 import tempfile
 import time
@@ -45,6 +47,18 @@ def worn_state(cfg: dict, ch, i0: int, acc_only: bool = False) -> tuple[str, dic
     feed = {"t_offset_s": 0.0, "last_t_s": float(ch.t_s[i0 - 1]), "first_t_s": float(ch.t_s[0]),
             "first_seq": 0, "samples": i0}
     return cal.to_json(), feed, len(cal.store)
+
+
+def machine_busy_s() -> float:
+    """CPU seconds the whole machine has spent busy since boot (all cores, every process:
+    the database server included), from ``/proc/stat``; NaN where there is none."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(x) for x in f.readline().split()[1:]]
+    except OSError:
+        return float("nan")
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle, iowait
+    return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")  # guest time is counted in user already
 
 
 def preload(store, device_id: str, worn: tuple[str, dict, int]) -> None:
@@ -161,11 +175,12 @@ def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db:
                 worker._calibrator(store.load_device(f"dev{d:04d}", with_state=False))
             timers.update(feed=0.0, to_json=0.0)
             written[0] = 0
-            t0 = time.perf_counter()
+            t0, c0, m0 = time.perf_counter(), time.process_time(), machine_busy_s()
             for _ in range(args.batches):
                 for d in range(args.devices):
                     worker.process(f"dev{d:04d}")
             wall = time.perf_counter() - t0
+            cpu, busy = time.process_time() - c0, machine_busy_s() - m0
             assert worker.replays == 0, "a worker that keeps its calibrators never replays"
             # what a takeover costs: a fresh worker restores every device (checkpoint + replay)
             fresh = make_worker(store, factory, Metrics(), settings)
@@ -181,7 +196,9 @@ def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db:
     cycles = args.devices * args.batches
     rest = wall - timers["feed"] - timers["to_json"]
     print(f"{backend}, checkpoint_samples {checkpoint_samples}: {cycles} cycles of {args.batch_samples} samples in {wall:.2f} s: "
-          f"{wall / cycles * 1e3:.2f} ms a cycle, {cycles * args.batch_samples / wall:,.0f} samples/s; calibrator feed "
+          f"{wall / cycles * 1e3:.2f} ms a cycle, {cycles * args.batch_samples / wall:,.0f} samples/s; CPU a cycle "
+          f"{cpu / cycles * 1e3:.2f} ms in this process, {busy / cycles * 1e3:.2f} ms on the machine (the database "
+          f"included); calibrator feed "
           f"{timers['feed'] / cycles * 1e3:.2f} ms, state to JSON {timers['to_json'] / cycles * 1e3:.2f} ms, the rest "
           f"(database, decoding, bookkeeping) {rest / cycles * 1e3:.2f} ms; state written {written[0] / cycles / 1024:,.1f} "
           f"KiB a cycle; a restore {restore * 1e3:.1f} ms (replaying {replayed:,.0f} samples)")

@@ -57,7 +57,7 @@ from selfcal_service.storage import (
 
 log = logging.getLogger("selfcal.service.postgres")
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 _SCHEMA_LOCK = 815_372_001  # pg_advisory_lock key while the schema is created or migrated
 
 _REFUSALS_SCHEMA = [
@@ -117,6 +117,85 @@ _INGEST_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_ingest(
             RAISE;
         WHEN OTHERS THEN
             status := 'error';
+            error := SQLSTATE || ': ' || SQLERRM;
+      END;
+    END
+    $fn$"""
+
+# A worker cycle's commit in one round trip (v5), for the cycles with no rejected batch and
+# no refusal (nearly all; those take the statement-by-statement path): lock the device row,
+# check that nobody changed it since the cycle read it and that the lease is still held,
+# number and insert the new versions, update the device, write the checkpoint if given
+# (never an older seq over a newer one) and mark the fed batches. The seven statements and
+# the savepoint cost the worker ~9 round trips of psycopg a cycle; this is one. Returns
+# (conflict text or NULL, the new version numbers). A conflict is found before anything is
+# written (a device row is created only when the checks pass); its EXCEPTION block is a
+# savepoint on the server: an error other than a lock conflict undoes this cycle only and
+# comes back as ``error``.
+_PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
+        p_device TEXT, p_expected_seq BIGINT, p_expected_rev BIGINT, p_owner TEXT, p_seq BIGINT,
+        p_samples BIGINT, p_status TEXT, p_last_refit TEXT, p_feed TEXT, p_at DOUBLE PRECISION,
+        p_state TEXT, p_fed BIGINT[], p_v_status TEXT[], p_v_source TEXT[], p_v_calibration TEXT[],
+        p_v_provenance TEXT[], OUT conflict TEXT, OUT numbers INTEGER[], OUT error TEXT)
+    LANGUAGE plpgsql AS $fn$
+    DECLARE
+        v_seq BIGINT; v_rev BIGINT; v_owner TEXT; v_until DOUBLE PRECISION; v_found BOOLEAN;
+        v_db_now DOUBLE PRECISION; v_n INTEGER; i INTEGER;
+    BEGIN
+      BEGIN
+        LOOP  -- at most twice: the row is created (if missing) only once the checks pass
+            SELECT processed_seq, state_rev, lease_owner, lease_until INTO v_seq, v_rev, v_owner, v_until
+                FROM devices WHERE device_id = p_device FOR UPDATE;
+            v_found := FOUND;
+            IF NOT v_found THEN
+                v_seq := NULL; v_rev := 0; v_owner := NULL; v_until := NULL;
+            END IF;
+            v_db_now := extract(epoch from clock_timestamp());
+            IF v_seq IS DISTINCT FROM p_expected_seq
+               OR (p_expected_rev IS NOT NULL AND v_rev IS DISTINCT FROM p_expected_rev) THEN
+                conflict := format('device %s: changed under the worker (processed_seq %s, state_rev %s)',
+                                   p_device, COALESCE(v_seq::text, 'None'), v_rev);
+                RETURN;
+            END IF;
+            IF p_owner IS NOT NULL AND (v_owner IS DISTINCT FROM p_owner OR COALESCE(v_until, 0) < v_db_now) THEN
+                conflict := format('device %s: lease of %s lost (owner %s)', p_device, p_owner,
+                                   COALESCE(v_owner, 'None'));
+                RETURN;
+            END IF;
+            EXIT WHEN v_found;
+            INSERT INTO devices(device_id, created_at) VALUES (p_device, p_at) ON CONFLICT DO NOTHING;
+        END LOOP;
+        numbers := '{}';
+        IF COALESCE(cardinality(p_v_status), 0) > 0 THEN
+            SELECT COALESCE(MAX(version), 0) INTO v_n FROM versions WHERE device_id = p_device;
+            FOR i IN 1 .. cardinality(p_v_status) LOOP
+                v_n := v_n + 1;
+                INSERT INTO versions(device_id, version, status, source, created_at, calibration, provenance)
+                    VALUES (p_device, v_n, p_v_status[i], p_v_source[i], p_at, p_v_calibration[i], p_v_provenance[i]);
+                numbers := numbers || v_n;
+            END LOOP;
+        END IF;
+        UPDATE devices SET processed_seq = p_seq, samples_processed = samples_processed + p_samples,
+            calibrator_status = p_status, last_refit = p_last_refit, feed_state = p_feed,
+            current_version = COALESCE(numbers[cardinality(numbers)], current_version), updated_at = p_at,
+            state_rev = state_rev + 1
+            WHERE device_id = p_device;
+        IF p_state IS NOT NULL THEN
+            INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at)
+                VALUES (p_device, p_seq, p_state, p_feed, p_at)
+                ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state,
+                    feed_state = excluded.feed_state, written_at = excluded.written_at
+                WHERE checkpoints.seq IS NULL OR excluded.seq >= checkpoints.seq;
+        END IF;
+        IF COALESCE(cardinality(p_fed), 0) > 0 THEN
+            UPDATE batches SET state = 1 WHERE device_id = p_device AND seq = ANY(p_fed) AND state = 0;
+        END IF;
+      EXCEPTION
+        WHEN deadlock_detected OR serialization_failure OR lock_not_available THEN
+            RAISE;
+        WHEN OTHERS THEN
+            conflict := NULL;
+            numbers := NULL;
             error := SQLSTATE || ': ' || SQLERRM;
       END;
     END
@@ -192,6 +271,7 @@ _SCHEMA = [
     _CHECKPOINTS_SCHEMA,
     *_WORKERS_SCHEMA,
     _STATE_MOVED,
+    _PROGRESS_FUNCTION,
 ]
 
 #: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
@@ -207,6 +287,7 @@ MIGRATIONS: dict[int, list[str]] = {
         "UPDATE devices SET calibrator_state = NULL WHERE calibrator_state IS NOT NULL",
         _STATE_MOVED,
     ],
+    4: [_PROGRESS_FUNCTION],  # v5: a worker cycle's commit in one round trip
 }
 
 _COLS = [*DEVICE_COLUMNS, "state_rev"]
@@ -216,6 +297,17 @@ _LOAD_COLS_STATE = ", ".join("c.state" if c == "calibrator_state" else f"d.{c}" 
 _CKPT_SQL = ", c.device_id IS NOT NULL, c.seq, c.feed_state FROM devices d LEFT JOIN checkpoints c " \
             "ON c.device_id = d.device_id WHERE d.device_id = %s"
 _N = len(_COLS)
+# a worker cycle's read: the device row (no state) and its first pending batches, one row
+# a batch (at least one row); the device's columns are NULL after the first row
+_CYCLE_SQL = (
+    "SELECT " + ", ".join(f"CASE WHEN b.first IS NOT FALSE THEN {c} END" for c in _DEVICE_READ_COLS.split(", "))
+    + ", CASE WHEN b.first IS NOT FALSE THEN c.device_id IS NOT NULL END,"
+    " CASE WHEN b.first IS NOT FALSE THEN c.seq END, CASE WHEN b.first IS NOT FALSE THEN c.feed_state END,"
+    " b.seq, b.n_samples, b.received_at, b.payload FROM devices d"
+    " LEFT JOIN checkpoints c ON c.device_id = d.device_id"
+    " LEFT JOIN LATERAL (SELECT seq, n_samples, received_at, payload, row_number() OVER (ORDER BY seq) = 1 AS first"
+    " FROM batches WHERE device_id = d.device_id AND state = 0 ORDER BY seq LIMIT %s) b ON true"
+    " WHERE d.device_id = %s ORDER BY b.seq")
 
 _NOW = "extract(epoch from clock_timestamp())"
 # the dashboard's page of devices: the served calibration's figures read with jsonb operators
@@ -430,7 +522,23 @@ class PostgresStore(GroupCommitStore):
             "ORDER BY seq LIMIT %s", (device_id, limit))
         return [PendingBatch(r[0], r[1], r[2], bytes(r[3])) for r in rows]
 
+    def load_cycle(self, device_id: str, limit: int) -> tuple[DeviceRecord | None, list[PendingBatch]]:
+        # one round trip; the device's columns come with the first batch's row only
+        rows = self._read(_CYCLE_SQL, (limit, device_id))
+        if not rows:
+            return None, []
+        rec = with_checkpoint(device_from_row(rows[0][:_N]), rows[0][_N:_N + 3])
+        return rec, [PendingBatch(r[-4], r[-3], r[-2], bytes(r[-1])) for r in rows if r[-4] is not None]
+
     def commit_progress(self, p: Progress) -> Future:
+        if not p.rejected and not p.refusals:  # nearly every cycle: one round trip
+            return self._commit_progress_function(p)
+        return self._commit_progress_statements(p)
+
+    def _commit_progress_statements(self, p: Progress) -> Future:
+        """:meth:`commit_progress` statement by statement (any cycle; the one with
+        rejected batches or refusals)."""
+
         def op(conn: Any) -> list[int]:
             now = time.time()
             conn.execute("INSERT INTO devices(device_id, created_at) VALUES (%s, %s) ON CONFLICT DO NOTHING",
@@ -491,6 +599,30 @@ class PostgresStore(GroupCommitStore):
                     (p.device_id, p.device_id, REFUSALS_KEPT_PER_DEVICE - 1))
             return numbers
 
+        op.device_id = p.device_id  # type: ignore[attr-defined]
+        return self._submit(op)
+
+    def _commit_progress_function(self, p: Progress) -> Future:
+        """:meth:`commit_progress` by ``selfcal_progress()`` (same checks, same writes)."""
+        vs = p.new_versions
+
+        def op(conn: Any) -> list[int]:
+            now = time.time()
+            conflict, numbers, error = conn.execute(
+                "SELECT conflict, numbers, error FROM selfcal_progress(%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, "
+                "%s, %s::bigint[], %s::text[], %s::text[], %s::text[], %s::text[])",
+                (p.device_id, p.expected_processed_seq, p.expected_state_rev, p.lease_owner, p.processed_seq,
+                 p.samples_added, p.calibrator_status, None if p.last_refit is None else dumps_json(p.last_refit),
+                 dumps_json(p.feed_state), now, p.calibrator_state, list(p.fed_seqs), [v.status for v in vs],
+                 [v.source for v in vs], [dumps_json(v.calibration) for v in vs],
+                 [dumps_json(v.provenance) for v in vs])).fetchone()
+            if error is not None:  # undone on the server; its neighbours in the group stand
+                raise RuntimeError(f"the database refused the cycle of device {p.device_id!r}: {error}")
+            if conflict is not None:
+                raise ConflictError(conflict)
+            return [int(n) for n in numbers]
+
+        op.one_statement = True  # type: ignore[attr-defined]  # a server-side savepoint; refusals raise in Python
         op.device_id = p.device_id  # type: ignore[attr-defined]
         return self._submit(op)
 

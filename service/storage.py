@@ -359,6 +359,15 @@ class Storage(abc.ABC):
     def pending_batches(self, device_id: str, limit: int) -> list[PendingBatch]:
         """Pending batches of a device in seq order."""
 
+    def load_cycle(self, device_id: str, limit: int) -> tuple[DeviceRecord | None, list[PendingBatch]]:
+        """What a worker cycle reads: the device row as ``load_device(device_id,
+        with_state=False)`` gives it (None: no such device) and its first ``limit`` pending
+        batches in seq order. A store may read both in one statement."""
+        rec = self.load_device(device_id, with_state=False)
+        if rec is None:
+            return None, []
+        return rec, self.pending_batches(device_id, limit)
+
     @abc.abstractmethod
     def commit_progress(self, progress: Progress) -> "Future[list[int]]":
         """Write one worker cycle atomically; resolves to the new version numbers."""

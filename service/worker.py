@@ -502,11 +502,8 @@ class RefitWorker:
             if wait > 0:
                 self._hold(device_id, wait)
                 return False
-        rec = self.store.load_device(device_id, with_state=False)
-        if rec is None:
-            return False
-        rows = self.store.pending_batches(device_id, self.max_batches)
-        if not rows:
+        rec, rows = self.store.load_cycle(device_id, self.max_batches)
+        if rec is None or not rows:
             return False
         now = time.time()
         take, late, held = self._plan(rec, rows, now)

@@ -134,3 +134,70 @@ def test_a_batch_the_driver_refuses_before_sending_fails_alone(two_stores):
         futs[1].result(timeout=30)
     dev, _ = a.current("dev-n")
     assert dev.batches_stored == 2
+
+
+def _rows(store, device):
+    """Everything a cycle writes for ``device``, without the device id and write times."""
+    dev = store.load_device(device)
+    batches = store._read("SELECT seq, state, reason FROM batches WHERE device_id = %s ORDER BY seq", (device,))
+    versions = [(v.version, v.status, v.source, v.calibration, v.provenance) for v in store.history(device)]
+    return ((dev.processed_seq, dev.samples_processed, dev.calibrator_state, dev.calibrator_status, dev.last_refit,
+             dev.feed_state, dev.current_version, dev.state_rev, dev.checkpoint),
+            batches, versions)
+
+
+def test_the_one_round_trip_commit_writes_and_refuses_as_the_statements_do(two_stores):
+    """``selfcal_progress()`` (the cycles without rejections or refusals) and the
+    statement-by-statement commit, given the same cycles on two devices: the same
+    refusals with the same messages, and the same rows written, checkpoints included."""
+    a, _ = two_stores
+    paths = {"dev-f": a._commit_progress_function, "dev-s": a._commit_progress_statements}
+    for device in paths:
+        for q in range(4):
+            _ingest(a, device, q).result(timeout=30)
+        assert device in a.acquire_leases("w", 30.0, 10)
+
+    def cycle(device, **kw):
+        dev = a.load_device(device, with_state=False)
+        base = dict(device_id=device, expected_processed_seq=dev.processed_seq, expected_state_rev=dev.state_rev,
+                    lease_owner="w", samples_added=4, calibrator_state=None, calibrator_status="provisional",
+                    last_refit={"t": 1.5}, feed_state={"samples": 4}, new_versions=[])
+        base.update(kw)
+        return Progress(**base)
+
+    v = [NewVersion("provisional", "refit", {"params": {"b": [0.1]}}, {"n": 1}),
+         NewVersion("calibrated", "refit", {"params": {"b": [0.2]}}, {"n": 2})]
+    script = [  # (cycle arguments, the refusal expected or None)
+        (dict(processed_seq=0, fed_seqs=[0], calibrator_state='{"s": 0}', new_versions=v[:1]), None),
+        (dict(processed_seq=2, fed_seqs=[1, 2], new_versions=v), None),  # two versions, no checkpoint
+        (dict(processed_seq=3, fed_seqs=[3], expected_state_rev=99), "changed under the worker"),
+        (dict(processed_seq=3, fed_seqs=[3], expected_processed_seq=0), "changed under the worker"),
+        (dict(processed_seq=3, fed_seqs=[3], lease_owner="other"), "lease of other lost"),
+        (dict(processed_seq=3, fed_seqs=[3], calibrator_state='{"s": 3}', calibrator_status="calibrated",
+              last_refit=None), None),
+    ]
+    for kw, refused in script:
+        outcomes = {}
+        for device, commit in paths.items():
+            try:
+                outcomes[device] = ("ok", commit(cycle(device, **kw)).result(timeout=30))
+            except ConflictError as exc:
+                outcomes[device] = ("refused", str(exc).replace(device, "DEV"))
+        assert outcomes["dev-f"] == outcomes["dev-s"], kw
+        if refused:
+            assert outcomes["dev-f"][0] == "refused" and refused in outcomes["dev-f"][1]
+        assert _rows(a, "dev-f") == _rows(a, "dev-s"), kw
+    # an older checkpoint never replaces a newer one, on either path
+    for device, commit in paths.items():
+        a.write_checkpoint(device, 3, '{"s": "newer"}', {"samples": 9})
+        a._read("UPDATE checkpoints SET seq = 10 WHERE device_id = %s RETURNING 1", (device,))
+        commit(cycle(device, processed_seq=3, fed_seqs=[], calibrator_state='{"s": "older"}')).result(timeout=30)
+        assert a.load_device(device).calibrator_state == '{"s": "newer"}'
+    assert _rows(a, "dev-f") == _rows(a, "dev-s")
+    assert [x.version for x in a.history("dev-f")] == [1, 2, 3]
+    # a device the cycle does not find is created only when the checks pass
+    with pytest.raises(ConflictError, match="changed under the worker"):
+        a._commit_progress_function(Progress(device_id="dev-new", expected_processed_seq=5, processed_seq=6,
+                                             samples_added=1, calibrator_state=None, calibrator_status=None,
+                                             last_refit=None, feed_state={})).result(timeout=30)
+    assert a.load_device("dev-new") is None

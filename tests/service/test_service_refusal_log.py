@@ -93,6 +93,7 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
     with psycopg.connect(url, autocommit=True) as conn:  # back to what schema 1 had
         conn.execute("DROP TABLE refusals")
         conn.execute("DROP FUNCTION selfcal_ingest")  # v3's one-round-trip ingest
+        conn.execute("DROP FUNCTION selfcal_progress")  # v5's one-round-trip worker commit
         conn.execute("DROP TABLE checkpoints")  # v4: the state in devices.calibrator_state until then
         conn.execute("DROP TABLE workers")
         conn.execute("ALTER TABLE devices DROP CONSTRAINT devices_state_in_checkpoints")
@@ -112,6 +113,11 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
         rec = store.load_device("dev-s")
         assert rec.calibrator_state == '{"s": 1}' and rec.checkpoint.seq == 4
         assert rec.checkpoint.feed_state == {"samples": 100}
+        # v5: a cycle without refusals commits through the function the migration created
+        cycle = _cycle("dev-s", [])
+        cycle.expected_processed_seq, cycle.processed_seq, cycle.fed_seqs = 4, 5, [5]
+        assert store.commit_progress(cycle).result(timeout=30) == []
+        assert store.load_device("dev-s", with_state=False).processed_seq == 5
     finally:
         store.close()
     with psycopg.connect(url, autocommit=True) as conn:
@@ -119,7 +125,7 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
         assert conn.execute("SELECT calibrator_state FROM devices WHERE device_id = 'dev-s'").fetchone() == (None,)
         with pytest.raises(psycopg.errors.CheckViolation):  # a schema-3 process cannot write a state there
             conn.execute("UPDATE devices SET calibrator_state = '{}' WHERE device_id = 'dev-s'")
-    assert SCHEMA_VERSION == 4
+    assert SCHEMA_VERSION == 5
 
 
 def test_the_refit_worker_logs_refits_without_a_model_and_rejected_batches():
