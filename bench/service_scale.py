@@ -24,6 +24,7 @@ import argparse
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -81,11 +82,35 @@ def preload_worn(db: str, args) -> None:
         store.close()
 
 
+def wal_lsn(db: str) -> str | None:
+    """PostgreSQL's current write-ahead-log position (None for SQLite)."""
+    if not db.startswith("postgresql"):
+        return None
+    import psycopg
+
+    with psycopg.connect(db, autocommit=True) as conn:
+        return conn.execute("SELECT pg_current_wal_lsn()::text").fetchone()[0]
+
+
+def wal_since(db: str, lsn: str | None) -> float:
+    """Bytes of write-ahead log PostgreSQL wrote since ``lsn`` (NaN for SQLite): every
+    write the database must persist (batches, versions, devices, checkpoints)."""
+    if lsn is None:
+        return float("nan")
+    import psycopg
+
+    with psycopg.connect(db, autocommit=True) as conn:
+        return float(conn.execute("SELECT pg_wal_lsn_diff(pg_current_wal_lsn(), %s::pg_lsn)", (lsn,)).fetchone()[0])
+
+
 def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dict:
     if getattr(args, "worn", None) is not None:
         preload_worn(db, args)
     port = free_port()
-    env = dict(os.environ, SELFCAL_API_KEYS=f"{KEY}=ingest+read", SELFCAL_MIN_CYCLE_INTERVAL_S=str(args.min_cycle_s))
+    # one metrics folder for the API and the workers: /metrics adds the workers' refit counters
+    metrics_dir = tempfile.mkdtemp(prefix="selfcal-bench-metrics-")
+    env = dict(os.environ, SELFCAL_API_KEYS=f"{KEY}=ingest+read", SELFCAL_MIN_CYCLE_INTERVAL_S=str(args.min_cycle_s),
+               SELFCAL_METRICS_DIR=metrics_dir)
     if args.checkpoint_samples is not None:
         env["SELFCAL_CHECKPOINT_SAMPLES"] = str(args.checkpoint_samples)
     cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", db, "--port", str(port), "--log-level", "warning"]
@@ -114,6 +139,7 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
                 except Exception:  # noqa: BLE001 - a sample missed under load
                     pass
 
+        wal0 = wal_lsn(db)
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
         load = subprocess.run(
@@ -123,6 +149,8 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
              "--format", args.format, "--inflight-devices", "0", "--seed", "7"],
             capture_output=True, text=True, timeout=900)
         stop.set()
+        wal_s = time.monotonic() - t0
+        wal_bytes = wal_since(db, wal0)
         rows = [json.loads(line) for line in load.stdout.splitlines() if line.startswith("{")]
         if not rows:
             raise RuntimeError(f"{label}: the load process printed nothing: {load.stderr[-1000:]}")
@@ -134,7 +162,11 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
         r.update(label=label, procs=procs, refit_workers=len(workers), backlog=backlog, gc=gc_pauses(m),
                  cycles=m.get("selfcal_worker_cycles_total", float("nan")),
                  samples_fed=m.get("selfcal_worker_samples_total", float("nan")),
-                 rejected=sum(v for k, v in m.items() if k.startswith("selfcal_rejected_batches_total")))
+                 checkpoints=m.get("selfcal_worker_checkpoints_total", float("nan")),
+                 replays=m.get("selfcal_worker_replays_total", float("nan")),
+                 replayed=m.get("selfcal_worker_replayed_samples_total", float("nan")),
+                 rejected=sum(v for k, v in m.items() if k.startswith("selfcal_rejected_batches_total")),
+                 wal_mb_s=wal_bytes / wal_s / 1e6)
         return r
     finally:
         stop.set()
@@ -145,6 +177,7 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
                 p.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 p.kill()
+        shutil.rmtree(metrics_dir, ignore_errors=True)
 
 
 def main() -> int:
@@ -211,13 +244,16 @@ def main() -> int:
                   f"last {ages[-1] if ages else float('nan'):.1f} s", flush=True)
             print(f"    the same GETs from inside the load generator's loop: p50 {r['get_p50_ms']:.2f} ms, "
                   f"p99 {r['get_p99_ms']:.2f} ms", flush=True)
+            if r["wal_mb_s"] == r["wal_mb_s"]:
+                print(f"    PostgreSQL write-ahead log: {r['wal_mb_s']:.1f} MB/s "
+                      f"({r['wal_mb_s'] * 1e6 / max(1.0, r['sustained_sps']):.0f} bytes a sample acked)", flush=True)
             if r["cycles"] > 0:
                 print(f"    refit cycles committed: {r['cycles']:,.0f} for {r['samples_fed']:,.0f} samples fed "
                       f"({r['samples_fed'] / r['cycles'] / (args.batch_s * 20):.1f} batches a cycle)", flush=True)
                 if r.get("rejected"):
                     print(f"    batches rejected (not fed): {r['rejected']:,.0f}", flush=True)
-            else:  # `selfcal worker` processes keep their counters to themselves (no shared metrics folder here)
-                print("    refit cycles: counted in the worker processes, not in this /metrics", flush=True)
+                print(f"    calibrator states written (checkpoints): {r['checkpoints']:,.0f}; restores that "
+                      f"replayed batches: {r['replays']:,.0f} ({r['replayed']:,.0f} samples fed again)", flush=True)
             if r.get("gc"):
                 print("    garbage-collector pauses of the API process(es) (generation: count, total, over 10 ms): " + "; ".join(
                     f"{g}: {n:.0f}, {tot * 1e3:.0f} ms, {long_:.0f}" for g, (n, tot, long_) in r["gc"].items()), flush=True)

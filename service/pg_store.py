@@ -12,7 +12,9 @@ processes and refit workers share one database:
   concurrent insert of the same ``(device_id, seq)`` and then compares the content
   hash: duplicate or 409, never a 500.
 * **Leases.** A refit worker owns a device while ``lease_owner`` is its id and
-  ``lease_until`` is in the future (:meth:`acquire_leases`, ``FOR UPDATE SKIP LOCKED``).
+  ``lease_until`` (set when taken) or the worker's heartbeat (``workers.until``, which
+  renews all its leases in one write) is in the future (:meth:`acquire_leases`, ``FOR
+  UPDATE SKIP LOCKED``).
   A killed worker's leases expire and another worker takes its devices.
   :meth:`commit_progress` writes only if the lease is still held *and* the device's
   ``processed_seq`` and ``state_rev`` are those the cycle started from, so a worker that
@@ -58,6 +60,9 @@ from selfcal_service.storage import (
 log = logging.getLogger("selfcal.service.postgres")
 
 SCHEMA_VERSION = 5
+# acquire_leases looks at this many more of the longest-waiting devices than it takes, and
+# takes the worker's own (last fed by it) among them first
+AFFINITY_SLACK = 32
 _SCHEMA_LOCK = 815_372_001  # pg_advisory_lock key while the schema is created or migrated
 
 _REFUSALS_SCHEMA = [
@@ -157,7 +162,8 @@ _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
                                    p_device, COALESCE(v_seq::text, 'None'), v_rev);
                 RETURN;
             END IF;
-            IF p_owner IS NOT NULL AND (v_owner IS DISTINCT FROM p_owner OR COALESCE(v_until, 0) < v_db_now) THEN
+            IF p_owner IS NOT NULL AND (v_owner IS DISTINCT FROM p_owner OR NOT (COALESCE(v_until, 0) >= v_db_now
+                    OR EXISTS (SELECT 1 FROM workers w WHERE w.owner = v_owner AND w.until >= v_db_now))) THEN
                 conflict := format('device %s: lease of %s lost (owner %s)', p_device, p_owner,
                                    COALESCE(v_owner, 'None'));
                 RETURN;
@@ -217,6 +223,10 @@ _WORKERS_SCHEMA = [
     "CREATE TABLE IF NOT EXISTS workers (owner TEXT PRIMARY KEY, seen_at DOUBLE PRECISION NOT NULL)",
     "CREATE INDEX IF NOT EXISTS devices_leased ON devices (lease_owner) WHERE lease_owner IS NOT NULL",
 ]
+# v5: a worker's heartbeat renews all its leases at once (workers.until); a device's lease
+# is live while its lease_until (set when taken) or its owner's heartbeat is ahead of now.
+# Renewing every device row every lease_ttl_s/3 wrote ~1.8 KB of log per lease held
+_WORKER_UNTIL = "ALTER TABLE workers ADD COLUMN IF NOT EXISTS until DOUBLE PRECISION"
 
 # a process of schema 3 still running against a migrated database (a rolling upgrade)
 # would read no state and publish from a fresh calibrator: its write fails instead
@@ -242,7 +252,8 @@ _SCHEMA = [
         last_rejection    TEXT,
         state_rev         BIGINT NOT NULL DEFAULT 0,
         lease_owner       TEXT,
-        lease_until       DOUBLE PRECISION
+        lease_until       DOUBLE PRECISION,
+        last_owner        TEXT
     )""",
     """CREATE TABLE IF NOT EXISTS batches (
         device_id   TEXT NOT NULL,
@@ -272,6 +283,7 @@ _SCHEMA = [
     *_WORKERS_SCHEMA,
     _STATE_MOVED,
     _PROGRESS_FUNCTION,
+    _WORKER_UNTIL,
 ]
 
 #: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
@@ -287,7 +299,11 @@ MIGRATIONS: dict[int, list[str]] = {
         "UPDATE devices SET calibrator_state = NULL WHERE calibrator_state IS NOT NULL",
         _STATE_MOVED,
     ],
-    4: [_PROGRESS_FUNCTION],  # v5: a worker cycle's commit in one round trip
+    4: [  # v5: a worker cycle's commit in one round trip; lease affinity
+        _PROGRESS_FUNCTION,
+        "ALTER TABLE devices ADD COLUMN IF NOT EXISTS last_owner TEXT",
+        _WORKER_UNTIL,
+    ],
 }
 
 _COLS = [*DEVICE_COLUMNS, "state_rev"]
@@ -310,6 +326,15 @@ _CYCLE_SQL = (
     " WHERE d.device_id = %s ORDER BY b.seq")
 
 _NOW = "extract(epoch from clock_timestamp())"
+
+
+def _lease_live(d: str) -> str:
+    """SQL: the lease of the device row aliased ``d`` is held now (taken less than a lease
+    time ago, or its owner's heartbeat is still ahead of now)."""
+    return (f"({d}.lease_until >= {_NOW} OR EXISTS (SELECT 1 FROM workers w WHERE w.owner = {d}.lease_owner"
+            f" AND w.until >= {_NOW}))")
+
+
 # the dashboard's page of devices: the served calibration's figures read with jsonb operators
 _FLEET_SQL = fleet_select(lambda key: f"((v.calibration::jsonb) ->> '{key}')::double precision",
                           lambda key: f"((v.calibration::jsonb) ->> '{key}')")  # the database's clock, seconds since the epoch
@@ -544,14 +569,14 @@ class PostgresStore(GroupCommitStore):
             conn.execute("INSERT INTO devices(device_id, created_at) VALUES (%s, %s) ON CONFLICT DO NOTHING",
                          (p.device_id, now))
             row = conn.execute(  # the device row lock serialises publishers of this device
-                f"SELECT processed_seq, state_rev, lease_owner, lease_until, {_NOW} FROM devices "
+                f"SELECT processed_seq, state_rev, lease_owner, {_lease_live('d')} FROM devices d "
                 "WHERE device_id = %s FOR UPDATE", (p.device_id,)).fetchone()
-            processed, rev, owner, until, db_now = row
+            processed, rev, owner, live = row
             if processed != p.expected_processed_seq or (p.expected_state_rev is not None
                                                          and rev != p.expected_state_rev):
                 raise ConflictError(f"device {p.device_id}: changed under the worker "
                                     f"(processed_seq {processed}, state_rev {rev})")
-            if p.lease_owner is not None and (owner != p.lease_owner or (until or 0.0) < db_now):
+            if p.lease_owner is not None and (owner != p.lease_owner or not live):
                 raise ConflictError(f"device {p.device_id}: lease of {p.lease_owner} lost (owner {owner})")
             numbers = []
             for v in p.new_versions:
@@ -627,32 +652,49 @@ class PostgresStore(GroupCommitStore):
         return self._submit(op)
 
     # ------------------------------------------------------------ leases
-    def acquire_leases(self, owner: str, ttl_s: float, limit: int, prefer: list[str] | None = None) -> list[str]:
+    def acquire_leases(self, owner: str, ttl_s: float, limit: int, prefer: list[str] | None = None,
+                       workers: int = 1) -> list[str]:
         """Lease up to ``limit`` devices with pending batches whose lease is free or expired.
 
         ``prefer`` (devices just ingested here) go first; devices this owner already holds
         are not returned again (renewal keeps them). Lease times are the database's clock,
         so hosts with skewed clocks cannot steal each other's live leases.
+
+        Affinity: of the ``limit * workers + 32`` candidates that waited longest (``workers``:
+        the live workers, so that about ``limit`` of them are this one's), the devices
+        this owner gave up last (``last_owner``) are taken first. A worker
+        that is behind its fleet gives every device up once fed; it then takes its own
+        back, whose calibrators it still has in memory, rather than another worker's
+        (a restore: the checkpoint and a replay of the batches fed since). The queue
+        stays fair within that window: a worker takes others' devices when fewer than
+        ``limit`` of its own are among them, so a slower worker's devices, a stopped
+        worker's and a new worker's first devices are taken oldest first once they fill
+        the window.
         """
         rows = self._read(
-            f"WITH c AS MATERIALIZED (SELECT d.device_id FROM devices d"
-            f" WHERE (d.lease_owner IS NULL OR d.lease_until < {_NOW})"
+            f"WITH w AS MATERIALIZED (SELECT d.device_id, d.updated_at, d.last_owner FROM devices d"
+            f" WHERE (d.lease_owner IS NULL OR NOT {_lease_live('d')})"
             " AND EXISTS (SELECT 1 FROM batches b WHERE b.device_id = d.device_id AND b.state = 0)"
             " ORDER BY (d.device_id = ANY(%(prefer)s)) DESC, d.updated_at NULLS FIRST"
-            " LIMIT %(limit)s FOR UPDATE SKIP LOCKED)"
+            " LIMIT %(window)s FOR UPDATE SKIP LOCKED),"
+            " c AS (SELECT device_id FROM w ORDER BY (device_id = ANY(%(prefer)s)) DESC,"
+            " (last_owner IS NOT DISTINCT FROM %(me)s) DESC, updated_at NULLS FIRST LIMIT %(limit)s)"
             f" UPDATE devices SET lease_owner = %(me)s, lease_until = {_NOW} + %(ttl)s"
             " FROM c WHERE devices.device_id = c.device_id RETURNING devices.device_id",
-            {"me": owner, "ttl": ttl_s, "prefer": list(prefer or []), "limit": limit})
+            {"me": owner, "ttl": ttl_s, "prefer": list(prefer or []), "limit": limit,
+             "window": limit * max(1, workers) + AFFINITY_SLACK})
         return [r[0] for r in rows]
 
     def renew_leases(self, owner: str, ttl_s: float) -> int:
-        """Extend every lease ``owner`` holds (rows locked right now are skipped, never waited on)."""
-        rows = self._read(
-            f"WITH c AS MATERIALIZED (SELECT device_id FROM devices WHERE lease_owner = %(me)s"
-            " ORDER BY device_id FOR UPDATE SKIP LOCKED)"
-            f" UPDATE devices SET lease_until = {_NOW} + %(ttl)s FROM c"
-            " WHERE devices.device_id = c.device_id RETURNING 1", {"me": owner, "ttl": ttl_s})
-        return len(rows)
+        """Extend every lease ``owner`` holds, by one write of its heartbeat (``workers.until``,
+        the database's clock); return the number of devices it holds."""
+        self._beat(owner, ttl_s)
+        return int(self._read("SELECT COUNT(*) FROM devices WHERE lease_owner = %s", (owner,))[0][0])
+
+    def _beat(self, owner: str, ttl_s: float) -> None:
+        self._read(f"INSERT INTO workers(owner, seen_at, until) VALUES (%(me)s, {_NOW}, {_NOW} + %(ttl)s) "
+                   "ON CONFLICT (owner) DO UPDATE SET seen_at = excluded.seen_at, until = excluded.until RETURNING 1",
+                   {"me": owner, "ttl": ttl_s})
 
     def leased_with_pending(self, owner: str) -> list[str]:
         """Devices ``owner`` holds that have pending batches (ingested by other processes)."""
@@ -664,29 +706,29 @@ class PostgresStore(GroupCommitStore):
         """Record ``owner`` as live; return (live workers, devices leased now, devices with
         pending batches that no live lease holds). Workers not seen for ten lease times
         are deleted."""
-        self._read(f"INSERT INTO workers(owner, seen_at) VALUES (%(me)s, {_NOW}) ON CONFLICT (owner) DO UPDATE "
-                   "SET seen_at = excluded.seen_at RETURNING 1", {"me": owner})
+        self._beat(owner, ttl_s)  # (this renews its leases too)
         self._read(f"DELETE FROM workers WHERE seen_at < {_NOW} - %(old)s RETURNING 1", {"old": 10 * ttl_s})
         rows = self._read(
             f"SELECT (SELECT COUNT(*) FROM workers WHERE seen_at >= {_NOW} - %(ttl)s),"
-            f" (SELECT COUNT(*) FROM devices WHERE lease_owner IS NOT NULL AND lease_until >= {_NOW}),"
+            f" (SELECT COUNT(*) FROM devices d WHERE d.lease_owner IS NOT NULL AND {_lease_live('d')}),"
             " (SELECT COUNT(DISTINCT b.device_id) FROM batches b JOIN devices d ON d.device_id = b.device_id"
-            f" WHERE b.state = 0 AND (d.lease_owner IS NULL OR d.lease_until < {_NOW}))", {"ttl": ttl_s})
+            f" WHERE b.state = 0 AND (d.lease_owner IS NULL OR NOT {_lease_live('d')}))", {"ttl": ttl_s})
         return int(rows[0][0]), int(rows[0][1]), int(rows[0][2])
 
     def forget_worker(self, owner: str) -> None:
-        """``owner`` stops (its share goes to the others at once)."""
+        """``owner`` stops (its share goes to the others at once; a lease it still holds
+        lapses within a lease time of being taken)."""
         self._read("DELETE FROM workers WHERE owner = %s RETURNING 1", (owner,))
 
     def release_lease(self, owner: str, device_id: str) -> None:
         """Give a device's lease up (it had nothing left to feed)."""
-        self._read("UPDATE devices SET lease_owner = NULL, lease_until = NULL "
+        self._read("UPDATE devices SET lease_owner = NULL, lease_until = NULL, last_owner = lease_owner "
                    "WHERE device_id = %s AND lease_owner = %s RETURNING 1", (device_id, owner))
 
     def lease_counts(self) -> dict[str, int]:
         """Leases held now, by owner (for metrics)."""
-        rows = self._read("SELECT lease_owner, COUNT(*) FROM devices WHERE lease_owner IS NOT NULL "
-                          f"AND lease_until >= {_NOW} GROUP BY 1")
+        rows = self._read("SELECT d.lease_owner, COUNT(*) FROM devices d WHERE d.lease_owner IS NOT NULL "
+                          f"AND {_lease_live('d')} GROUP BY 1")
         return {r[0]: int(r[1]) for r in rows}
 
     # ------------------------------------------------------------ reads

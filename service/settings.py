@@ -86,9 +86,10 @@ class Settings(BaseModel):
     )
     lease_poll_s: float = Field(0.25, gt=0, le=60, description="PostgreSQL: how often a worker looks for work")
     lease_max_devices: int = Field(
-        256, ge=1, le=1_000_000,
-        description="PostgreSQL: devices a refit worker leases at once (the calibrators it keeps in memory are "
-                    "bounded by cache_max_devices)",
+        8192, ge=1, le=1_000_000,
+        description="PostgreSQL: devices a refit worker leases at once, at most (it holds about its share of the "
+                    "active devices: active / live workers); beyond it a worker gives each device up once fed. "
+                    "The calibrators it keeps in memory are bounded by cache_max_devices",
     )
     lease_idle_s: float = Field(
         60.0, ge=0, le=3600,

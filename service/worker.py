@@ -144,7 +144,7 @@ class LeaseConfig:
     owner: str
     ttl_s: float = 10.0
     poll_s: float = 0.25
-    max_devices: int = 256
+    max_devices: int = 8192
     idle_s: float = 60.0
 
 
@@ -336,7 +336,8 @@ class RefitWorker:
                     pass  # its hold timer looks at it again
                 elif len(self._leased) > self._keep_cap():
                     # the room is needed: given up at once, and not written (the workers are
-                    # behind; whoever takes it next restores it, from memory if it was this one)
+                    # behind). The leases' affinity gives it back to this worker, whose
+                    # calibrator is in memory; another worker restores it (checkpoint + replay)
                     self._release(device_id, force=True, checkpoint=False)
                 else:  # kept for its next batch; the lease thread gives it up when idle
                     self._idle[device_id] = time.monotonic()
@@ -532,8 +533,7 @@ class RefitWorker:
         last_refit = jsonable(getattr(cal, "last_refit", None))
         more = len(rows) >= self.max_batches
         checkpoint = self.checkpoint_samples <= 0 or \
-            self._samples_since_checkpoint(rec, feed) >= self.checkpoint_samples or \
-            self._will_hand_over(more, bool(held))
+            self._samples_since_checkpoint(rec, feed) >= self.checkpoint_samples
         progress = Progress(
             device_id=device_id,
             expected_processed_seq=rec.processed_seq,
@@ -734,7 +734,7 @@ class RefitWorker:
             try:
                 now = time.monotonic()
                 if now - last_renew >= lease.ttl_s / 3:
-                    self.store.renew_leases(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
+                    # the heartbeat renews every lease this worker holds
                     workers, leased, waiting = self.store.heartbeat(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
                     self._share = max(1, math.ceil((leased + waiting) / max(1, workers)))
                     self._waiting = waiting
@@ -744,7 +744,7 @@ class RefitWorker:
                 if room <= 0:
                     room = 0 if self._leased else 1  # (a worker holding nothing always takes one)
                 got = [] if room == 0 else self.store.acquire_leases(  # type: ignore[attr-defined]
-                    lease.owner, lease.ttl_s, room, prefer=wanted)
+                    lease.owner, lease.ttl_s, room, prefer=wanted, workers=self._workers)
             except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
                 log.warning("leases: %s", exc)
                 self._stop.wait(lease.poll_s)
@@ -760,14 +760,6 @@ class RefitWorker:
             except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
                 log.warning("leases: %s", exc)
                 self._stop.wait(lease.poll_s)
-
-    def _will_hand_over(self, more: bool, held: bool) -> bool:
-        """Whether this cycle ends by giving the device up while other live workers may
-        take it next (the workers are behind: ``_loop``): its state is then written in
-        the cycle's own commit, so that the next holder restores it without a replay."""
-        if self.lease is None or more or held or self._workers < 2:
-            return False
-        return len(self._leased) > self._keep_cap()
 
     def _keep_cap(self) -> int:
         """Devices this worker may keep leased between batches: its share of the fleet's

@@ -93,6 +93,66 @@ def test_two_workers_lease_disjoint_devices_and_an_expired_lease_moves_on(two_st
     assert a.lease_counts() == {"worker-b": 6}
 
 
+def test_a_heartbeat_renews_every_lease_of_its_worker_without_writing_a_device_row(two_stores):
+    a, b = two_stores
+    for i in range(3):
+        _ingest(a, f"dev-h{i}", 0).result(timeout=30)
+    assert len(a.acquire_leases("worker-a", 0.6, 3)) == 3
+    rows_before = a._read("SELECT device_id, xmin::text FROM devices WHERE lease_owner = 'worker-a' ORDER BY 1")
+    for _ in range(4):  # 1.2 s: twice the lease time, each lease kept by the heartbeats alone
+        time.sleep(0.3)
+        assert a.heartbeat("worker-a", 0.6)[1] == 3
+        assert b.acquire_leases("worker-b", 30.0, 10) == []
+    assert a.lease_counts() == {"worker-a": 3}
+    assert a._read("SELECT device_id, xmin::text FROM devices WHERE lease_owner = 'worker-a' "
+                   "ORDER BY 1") == rows_before  # no device row was rewritten
+    time.sleep(0.8)  # the heartbeats stop (a killed worker): every lease lapses at once
+    assert a.lease_counts() == {}
+    assert len(b.acquire_leases("worker-b", 30.0, 10)) == 3
+
+
+def test_a_worker_takes_back_the_devices_it_gave_up_first_among_the_oldest_waiting(two_stores):
+    """Lease affinity: among the ``limit * workers + AFFINITY_SLACK`` devices that waited longest, a
+    worker takes those it gave up last first (their calibrators are in its memory); when
+    fewer than ``limit`` of its own are among them, the oldest others are taken (the
+    queue stays fair: a stopped or slower worker's devices move on)."""
+    from selfcal_service.pg_store import AFFINITY_SLACK
+
+    a, b = two_stores
+    window = 2 + AFFINITY_SLACK  # for limit 2, one live worker (the default)
+    mine = [f"dev-a{i:02d}" for i in range(4)]
+    theirs = [f"dev-b{i:02d}" for i in range(window + 2)]
+    for d in mine + theirs:
+        _ingest(a, d, 0).result(timeout=30)
+    assert sorted(a.acquire_leases("worker-a", 30.0, len(mine), prefer=mine)) == mine
+    assert sorted(b.acquire_leases("worker-b", 30.0, len(theirs), prefer=theirs)) == theirs
+    for d in mine:
+        a.release_lease("worker-a", d)
+    for d in theirs:
+        b.release_lease("worker-b", d)
+    assert a._read("SELECT last_owner FROM devices WHERE device_id = %s", (mine[0],)) == [("worker-a",)]
+
+    def wait_order(order):
+        for age, d in enumerate(order):
+            a._read("UPDATE devices SET updated_at = %s WHERE device_id = %s RETURNING 1", (1000.0 + age, d))
+
+    # worker a's own devices are among the window (behind window - 2 of worker b's): taken first
+    wait_order(theirs[: window - 2] + mine + theirs[window - 2:])
+    assert sorted(a.acquire_leases("worker-a", 30.0, 2)) == mine[:2]
+    # worker b's own: the oldest two
+    assert sorted(b.acquire_leases("worker-b", 30.0, 2)) == theirs[:2]
+    # the window is all worker b's devices (they waited longest): worker a takes the oldest two
+    a.release_lease("worker-a", mine[0])
+    a.release_lease("worker-a", mine[1])
+    wait_order(theirs[2:] + mine)
+    # with two live workers the window is twice as deep: worker a's own are in it again
+    assert sorted(a.acquire_leases("worker-a", 30.0, 2, workers=2)) == mine[:2]
+    a.release_lease("worker-a", mine[0])
+    a.release_lease("worker-a", mine[1])
+    wait_order(theirs[2:] + mine)
+    assert sorted(a.acquire_leases("worker-a", 30.0, 2)) == theirs[2:4]
+
+
 def test_a_batch_the_database_refuses_does_not_sink_its_group(two_stores):
     """The ingest runs without a client savepoint (one round trip): a batch whose insert
     fails on the server is undone by the function's own savepoint, refused alone, and

@@ -94,6 +94,7 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
         conn.execute("DROP TABLE refusals")
         conn.execute("DROP FUNCTION selfcal_ingest")  # v3's one-round-trip ingest
         conn.execute("DROP FUNCTION selfcal_progress")  # v5's one-round-trip worker commit
+        conn.execute("ALTER TABLE devices DROP COLUMN last_owner")  # v5's lease affinity
         conn.execute("DROP TABLE checkpoints")  # v4: the state in devices.calibrator_state until then
         conn.execute("DROP TABLE workers")
         conn.execute("ALTER TABLE devices DROP CONSTRAINT devices_state_in_checkpoints")
