@@ -893,4 +893,8 @@ class RefitWorker:
             cached = self._cache.get(device_id)
             if cached is not None and rec is not None and cached[0] == (expected, rec.state_rev):
                 self._keep(device_id, (expected, rev), cached[1])
+                dirty = self._dirty.get(device_id)
+                if dirty is not None and (dirty[0], dirty[1]) == (expected, rec.state_rev):
+                    # still ahead of its checkpoint, now at the new revision: written later
+                    self._dirty[device_id] = (expected, rev, dirty[2])
         return numbers[-1]

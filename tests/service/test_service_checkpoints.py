@@ -283,3 +283,21 @@ def test_a_worker_whose_device_was_seeded_elsewhere_does_not_write_its_older_sta
         assert store.load_device("ins").calibrator_state == seeded.calibrator_state
     finally:
         store.close()
+
+
+def test_a_rollback_by_the_worker_leaves_its_calibrator_due_for_its_checkpoint(tmp_path, stream):
+    """An admin rollback through the worker that holds a device's calibrator ahead of its
+    checkpoint changes the device's revision, not the calibrator: the calibrator is still
+    written as the checkpoint when the worker stops (on PostgreSQL the write checks the
+    revision, so the worker must follow it)."""
+    from selfcal_service.storage import NewVersion
+
+    store, worker, _ = _fed(tmp_path / "rollback.db", stream, 2)
+    try:
+        assert "ins" in worker._dirty
+        worker.publish_admin("ins", NewVersion("provisional", "rollback", {"params": {}}, {}))
+        assert worker.flush_checkpoints() == 1
+        rec = store.load_device("ins")
+        assert rec.checkpoint.seq == 1 and rec.calibrator_state and rec.checkpoint.feed_state["samples"] == 2 * N
+    finally:
+        store.close()
