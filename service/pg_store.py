@@ -12,7 +12,7 @@ processes and refit workers share one database:
   concurrent insert of the same ``(device_id, seq)`` and then compares the content
   hash: duplicate or 409, never a 500.
 * **Leases.** A refit worker owns a device while ``lease_owner`` is its id and
-  ``lease_until`` (set when taken) or the worker's heartbeat (``workers.until``, which
+  ``lease_expires`` (set when taken) or the worker's heartbeat (``workers.until``, which
   renews all its leases in one write) is in the future (:meth:`acquire_leases`, ``FOR
   UPDATE SKIP LOCKED``).
   A killed worker's leases expire and another worker takes its devices.
@@ -149,7 +149,7 @@ _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
     BEGIN
       BEGIN
         LOOP  -- at most twice: the row is created (if missing) only once the checks pass
-            SELECT processed_seq, state_rev, lease_owner, lease_until INTO v_seq, v_rev, v_owner, v_until
+            SELECT processed_seq, state_rev, lease_owner, lease_expires INTO v_seq, v_rev, v_owner, v_until
                 FROM devices WHERE device_id = p_device FOR UPDATE;
             v_found := FOUND;
             IF NOT v_found THEN
@@ -183,7 +183,8 @@ _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
         END IF;
         UPDATE devices SET processed_seq = p_seq, samples_processed = samples_processed + p_samples,
             calibrator_status = p_status, last_refit = p_last_refit, feed_state = p_feed,
-            current_version = COALESCE(numbers[cardinality(numbers)], current_version), updated_at = p_at,
+            current_version = COALESCE(numbers[cardinality(numbers)], current_version),
+            updated_at = extract(epoch from clock_timestamp()),
             state_rev = state_rev + 1
             WHERE device_id = p_device;
         IF p_state IS NOT NULL THEN
@@ -224,9 +225,17 @@ _WORKERS_SCHEMA = [
     "CREATE INDEX IF NOT EXISTS devices_leased ON devices (lease_owner) WHERE lease_owner IS NOT NULL",
 ]
 # v5: a worker's heartbeat renews all its leases at once (workers.until); a device's lease
-# is live while its lease_until (set when taken) or its owner's heartbeat is ahead of now.
-# Renewing every device row every lease_ttl_s/3 wrote ~1.8 KB of log per lease held
+# is live while its lease_expires (set when taken) or its owner's heartbeat is ahead of now.
+# Renewing every device row every lease_ttl_s/3 wrote ~1.8 KB of log per lease held.
+# lease_until, which schema-4 workers renew row by row and trust alone, stays NULL: such a
+# worker left running would take live leases from schema-5 workers, so its lease writes
+# fail instead (a rolling upgrade stops the old workers)
 _WORKER_UNTIL = "ALTER TABLE workers ADD COLUMN IF NOT EXISTS until DOUBLE PRECISION"
+_LEASE_EXPIRES = [
+    "ALTER TABLE devices ADD COLUMN IF NOT EXISTS lease_expires DOUBLE PRECISION",
+    "UPDATE devices SET lease_expires = lease_until, lease_until = NULL WHERE lease_until IS NOT NULL",
+    "ALTER TABLE devices ADD CONSTRAINT devices_leases_by_heartbeat CHECK (lease_until IS NULL)",
+]
 
 # a process of schema 3 still running against a migrated database (a rolling upgrade)
 # would read no state and publish from a fresh calibrator: its write fails instead
@@ -284,6 +293,7 @@ _SCHEMA = [
     _STATE_MOVED,
     _PROGRESS_FUNCTION,
     _WORKER_UNTIL,
+    *_LEASE_EXPIRES,
 ]
 
 #: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
@@ -303,6 +313,7 @@ MIGRATIONS: dict[int, list[str]] = {
         _PROGRESS_FUNCTION,
         "ALTER TABLE devices ADD COLUMN IF NOT EXISTS last_owner TEXT",
         _WORKER_UNTIL,
+        *_LEASE_EXPIRES,
     ],
 }
 
@@ -331,7 +342,7 @@ _NOW = "extract(epoch from clock_timestamp())"
 def _lease_live(d: str) -> str:
     """SQL: the lease of the device row aliased ``d`` is held now (taken less than a lease
     time ago, or its owner's heartbeat is still ahead of now)."""
-    return (f"({d}.lease_until >= {_NOW} OR EXISTS (SELECT 1 FROM workers w WHERE w.owner = {d}.lease_owner"
+    return (f"({d}.lease_expires >= {_NOW} OR EXISTS (SELECT 1 FROM workers w WHERE w.owner = {d}.lease_owner"
             f" AND w.until >= {_NOW}))")
 
 
@@ -591,11 +602,11 @@ class PostgresStore(GroupCommitStore):
             conn.execute(
                 "UPDATE devices SET processed_seq = %s, samples_processed = samples_processed + %s, "
                 "calibrator_status = %s, last_refit = %s, feed_state = %s, "
-                "current_version = COALESCE(%s, current_version), updated_at = %s, state_rev = state_rev + 1 "
+                f"current_version = COALESCE(%s, current_version), updated_at = {_NOW}, state_rev = state_rev + 1 "
                 "WHERE device_id = %s",
                 (p.processed_seq, p.samples_added, p.calibrator_status,
                  None if p.last_refit is None else dumps_json(p.last_refit), dumps_json(p.feed_state),
-                 numbers[-1] if numbers else None, now, p.device_id))
+                 numbers[-1] if numbers else None, p.device_id))
             if p.calibrator_state is not None:
                 upsert_checkpoint(conn, "%s", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now)
             if p.fed_seqs:
@@ -662,25 +673,34 @@ class PostgresStore(GroupCommitStore):
 
         Affinity: of the ``limit * workers + 32`` candidates that waited longest (``workers``:
         the live workers, so that about ``limit`` of them are this one's), the devices
-        this owner gave up last (``last_owner``) are taken first. A worker
-        that is behind its fleet gives every device up once fed; it then takes its own
-        back, whose calibrators it still has in memory, rather than another worker's
-        (a restore: the checkpoint and a replay of the batches fed since). The queue
-        stays fair within that window: a worker takes others' devices when fewer than
-        ``limit`` of its own are among them, so a slower worker's devices, a stopped
-        worker's and a new worker's first devices are taken oldest first once they fill
-        the window.
+        this owner gave up last (``last_owner``) and those whose last owner is no live
+        worker (new devices, a stopped worker's) are taken first, then the others, oldest
+        first. A worker that is behind its fleet gives every device up once fed; it then
+        takes its own back, whose calibrators it still has in memory, rather than another
+        worker's (a restore: the checkpoint and a replay of the batches fed since).
+        Nothing waits for ever: a device is its last owner's while that worker lives, and
+        everyone's after; it moves to the front of the queue as the devices before it
+        are fed, and a worker whose own devices fall behind finds its oldest in the other
+        workers' windows, which take them when they hold fewer than ``limit`` of their own.
         """
         rows = self._read(
-            f"WITH w AS MATERIALIZED (SELECT d.device_id, d.updated_at, d.last_owner FROM devices d"
+            # the window, read without locks (locking it would write a lock for every row)
+            "WITH w AS MATERIALIZED (SELECT d.device_id, d.updated_at, d.last_owner,"
+            " d.device_id = ANY(%(prefer)s) AS preferred FROM devices d"
             f" WHERE (d.lease_owner IS NULL OR NOT {_lease_live('d')})"
             " AND EXISTS (SELECT 1 FROM batches b WHERE b.device_id = d.device_id AND b.state = 0)"
-            " ORDER BY (d.device_id = ANY(%(prefer)s)) DESC, d.updated_at NULLS FIRST"
-            " LIMIT %(window)s FOR UPDATE SKIP LOCKED),"
-            " c AS (SELECT device_id FROM w ORDER BY (device_id = ANY(%(prefer)s)) DESC,"
-            " (last_owner IS NOT DISTINCT FROM %(me)s) DESC, updated_at NULLS FIRST LIMIT %(limit)s)"
-            f" UPDATE devices SET lease_owner = %(me)s, lease_until = {_NOW} + %(ttl)s"
-            " FROM c WHERE devices.device_id = c.device_id RETURNING devices.device_id",
+            " ORDER BY preferred DESC, d.updated_at NULLS FIRST LIMIT %(window)s),"
+            # the devices taken: preferred, then this worker's own (and those no live worker
+            # fed last: new devices, a stopped worker's), then the others; oldest first
+            " r AS (SELECT *, (last_owner IS NULL OR last_owner = %(me)s OR NOT EXISTS (SELECT 1 FROM workers k"
+            f" WHERE k.owner = w.last_owner AND k.until >= {_NOW})) AS own FROM w),"
+            " c AS (SELECT device_id FROM r ORDER BY preferred DESC, own DESC, updated_at NULLS FIRST"
+            " LIMIT %(limit)s),"
+            # only those are locked, and taken if still free (another worker may have been first)
+            " l AS MATERIALIZED (SELECT d.device_id FROM devices d JOIN c ON c.device_id = d.device_id"
+            f" WHERE d.lease_owner IS NULL OR NOT {_lease_live('d')} FOR UPDATE OF d SKIP LOCKED)"
+            f" UPDATE devices SET lease_owner = %(me)s, lease_expires = {_NOW} + %(ttl)s"
+            " FROM l WHERE devices.device_id = l.device_id RETURNING devices.device_id",
             {"me": owner, "ttl": ttl_s, "prefer": list(prefer or []), "limit": limit,
              "window": limit * max(1, workers) + AFFINITY_SLACK})
         return [r[0] for r in rows]
@@ -722,7 +742,7 @@ class PostgresStore(GroupCommitStore):
 
     def release_lease(self, owner: str, device_id: str) -> None:
         """Give a device's lease up (it had nothing left to feed)."""
-        self._read("UPDATE devices SET lease_owner = NULL, lease_until = NULL, last_owner = lease_owner "
+        self._read("UPDATE devices SET lease_owner = NULL, lease_expires = NULL, last_owner = lease_owner "
                    "WHERE device_id = %s AND lease_owner = %s RETURNING 1", (device_id, owner))
 
     def lease_counts(self) -> dict[str, int]:

@@ -241,7 +241,9 @@ class RefitWorker:
                 shard.thread.join(timeout=60)
         if self._lease_thread is not None:
             self._lease_thread.join(timeout=30)
-        self.flush_checkpoints()  # a restart then restores without a replay
+        # a restart then restores without a replay; with leases, only the devices still held
+        # (the others were given up unwritten, and other workers may have fed them since)
+        self.flush_checkpoints(only=None if self.lease is None else set(self._leased))
         if self.lease is not None:  # hand the devices over now rather than at lease expiry
             for device_id in list(self._leased):
                 self._release(device_id, force=True)
@@ -417,11 +419,14 @@ class RefitWorker:
         base = rec.checkpoint.feed_state.get("samples", 0) if rec.checkpoint is not None else 0
         return int(feed.get("samples", 0)) - int(base or 0)
 
-    def flush_checkpoints(self, lock_timeout_s: float = 5.0) -> int:
-        """Write the cached calibrators that are ahead of their checkpoint (at a stop);
-        returns how many were written. A device whose cycle still runs is left to a replay."""
+    def flush_checkpoints(self, lock_timeout_s: float = 5.0, only: set[str] | None = None) -> int:
+        """Write the cached calibrators that are ahead of their checkpoint (at a stop), of
+        the devices in ``only`` if given; returns how many were written. A device whose
+        cycle still runs is left to a replay."""
         written = 0
         for device_id in list(self._dirty):
+            if only is not None and device_id not in only:
+                continue
             lock = self.device_lock(device_id)
             if lock.acquire(timeout=lock_timeout_s):
                 try:
@@ -723,11 +728,12 @@ class RefitWorker:
         lease = self.lease
         assert lease is not None
         last_renew = 0.0
+        deferred: list[str] = []  # ingested here, not leased for want of room: preferred next time
         while not self._stop.is_set():
             with self._lease_cond:
                 if not self._wanted:
                     self._lease_cond.wait(timeout=lease.poll_s)
-                wanted = list(self._wanted)
+                wanted = list(dict.fromkeys([*deferred, *self._wanted]))
                 self._wanted.clear()
             if self._stop.is_set():
                 return
@@ -745,6 +751,8 @@ class RefitWorker:
                     room = 0 if self._leased else 1  # (a worker holding nothing always takes one)
                 got = [] if room == 0 else self.store.acquire_leases(  # type: ignore[attr-defined]
                     lease.owner, lease.ttl_s, room, prefer=wanted, workers=self._workers)
+                # no room now: the devices ingested here stay preferred at the next pass
+                deferred = [d for d in wanted if d not in self._leased][-lease.max_devices:] if room == 0 else []
             except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
                 log.warning("leases: %s", exc)
                 self._stop.wait(lease.poll_s)

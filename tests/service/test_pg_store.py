@@ -113,12 +113,14 @@ def test_a_heartbeat_renews_every_lease_of_its_worker_without_writing_a_device_r
 
 def test_a_worker_takes_back_the_devices_it_gave_up_first_among_the_oldest_waiting(two_stores):
     """Lease affinity: among the ``limit * workers + AFFINITY_SLACK`` devices that waited longest, a
-    worker takes those it gave up last first (their calibrators are in its memory); when
-    fewer than ``limit`` of its own are among them, the oldest others are taken (the
-    queue stays fair: a stopped or slower worker's devices move on)."""
+    worker takes those it gave up last first (their calibrators are in its memory), and
+    those no live worker fed last; when fewer than ``limit`` of these are among them, the
+    oldest others are taken (a slower worker's devices move on)."""
     from selfcal_service.pg_store import AFFINITY_SLACK
 
     a, b = two_stores
+    a.heartbeat("worker-a", 60.0)  # both live
+    b.heartbeat("worker-b", 60.0)
     window = 2 + AFFINITY_SLACK  # for limit 2, one live worker (the default)
     mine = [f"dev-a{i:02d}" for i in range(4)]
     theirs = [f"dev-b{i:02d}" for i in range(window + 2)]
@@ -151,6 +153,12 @@ def test_a_worker_takes_back_the_devices_it_gave_up_first_among_the_oldest_waiti
     a.release_lease("worker-a", mine[1])
     wait_order(theirs[2:] + mine)
     assert sorted(a.acquire_leases("worker-a", 30.0, 2)) == theirs[2:4]
+    # a device no live worker fed last (new, or a stopped worker's) is everyone's own
+    _ingest(a, "dev-new", 0).result(timeout=30)
+    wait_order(theirs[4:] + ["dev-new"])  # the youngest of the window
+    assert a.acquire_leases("worker-a", 30.0, 1) == ["dev-new"]
+    b.forget_worker("worker-b")
+    assert a.acquire_leases("worker-a", 30.0, 1) == [theirs[4]]  # the oldest: worker b is gone
 
 
 def test_a_batch_the_database_refuses_does_not_sink_its_group(two_stores):

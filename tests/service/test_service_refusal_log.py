@@ -95,6 +95,8 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
         conn.execute("DROP FUNCTION selfcal_ingest")  # v3's one-round-trip ingest
         conn.execute("DROP FUNCTION selfcal_progress")  # v5's one-round-trip worker commit
         conn.execute("ALTER TABLE devices DROP COLUMN last_owner")  # v5's lease affinity
+        conn.execute("ALTER TABLE devices DROP CONSTRAINT devices_leases_by_heartbeat")  # v5's leases
+        conn.execute("ALTER TABLE devices DROP COLUMN lease_expires")
         conn.execute("DROP TABLE checkpoints")  # v4: the state in devices.calibrator_state until then
         conn.execute("DROP TABLE workers")
         conn.execute("ALTER TABLE devices DROP CONSTRAINT devices_state_in_checkpoints")
@@ -126,6 +128,8 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
         assert conn.execute("SELECT calibrator_state FROM devices WHERE device_id = 'dev-s'").fetchone() == (None,)
         with pytest.raises(psycopg.errors.CheckViolation):  # a schema-3 process cannot write a state there
             conn.execute("UPDATE devices SET calibrator_state = '{}' WHERE device_id = 'dev-s'")
+        with pytest.raises(psycopg.errors.CheckViolation):  # nor a schema-4 worker take or renew a lease
+            conn.execute("UPDATE devices SET lease_owner = 'old', lease_until = 1e12 WHERE device_id = 'dev-s'")
     assert SCHEMA_VERSION == 5
 
 
