@@ -82,25 +82,16 @@ def preload_worn(db: str, args) -> None:
         store.close()
 
 
-def wal_lsn(db: str) -> str | None:
-    """PostgreSQL's current write-ahead-log position (None for SQLite)."""
+def wal_bytes(db: str) -> float:
+    """PostgreSQL's write-ahead-log position, in bytes since its start (NaN for SQLite): the
+    difference over a run is every write the database had to persist (batches, versions,
+    devices, checkpoints)."""
     if not db.startswith("postgresql"):
-        return None
-    import psycopg
-
-    with psycopg.connect(db, autocommit=True) as conn:
-        return conn.execute("SELECT pg_current_wal_lsn()::text").fetchone()[0]
-
-
-def wal_since(db: str, lsn: str | None) -> float:
-    """Bytes of write-ahead log PostgreSQL wrote since ``lsn`` (NaN for SQLite): every
-    write the database must persist (batches, versions, devices, checkpoints)."""
-    if lsn is None:
         return float("nan")
     import psycopg
 
     with psycopg.connect(db, autocommit=True) as conn:
-        return float(conn.execute("SELECT pg_wal_lsn_diff(pg_current_wal_lsn(), %s::pg_lsn)", (lsn,)).fetchone()[0])
+        return float(conn.execute("SELECT pg_wal_lsn_diff(pg_current_wal_lsn(), '0/0')").fetchone()[0])
 
 
 def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dict:
@@ -139,7 +130,7 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
                 except Exception:  # noqa: BLE001 - a sample missed under load
                     pass
 
-        wal0 = wal_lsn(db)
+        wal0 = wal_bytes(db)
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
         load = subprocess.run(
@@ -150,7 +141,7 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
             capture_output=True, text=True, timeout=900)
         stop.set()
         wal_s = time.monotonic() - t0
-        wal_bytes = wal_since(db, wal0)
+        wal = wal_bytes(db) - wal0
         rows = [json.loads(line) for line in load.stdout.splitlines() if line.startswith("{")]
         if not rows:
             raise RuntimeError(f"{label}: the load process printed nothing: {load.stderr[-1000:]}")
@@ -166,7 +157,7 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
                  replays=m.get("selfcal_worker_replays_total", float("nan")),
                  replayed=m.get("selfcal_worker_replayed_samples_total", float("nan")),
                  rejected=sum(v for k, v in m.items() if k.startswith("selfcal_rejected_batches_total")),
-                 wal_mb_s=wal_bytes / wal_s / 1e6)
+                 wal_mb_s=wal / wal_s / 1e6)
         return r
     finally:
         stop.set()

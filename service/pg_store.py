@@ -49,6 +49,7 @@ from selfcal_service.storage import (
     RefusalRecord,
     device_from_row,
     upsert_checkpoint,
+    upsert_checkpoint_sql,
     with_checkpoint,
     dumps_json,
     fleet_from_row,
@@ -188,11 +189,7 @@ _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
             state_rev = state_rev + 1
             WHERE device_id = p_device;
         IF p_state IS NOT NULL THEN
-            INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at)
-                VALUES (p_device, p_seq, p_state, p_feed, p_at)
-                ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state,
-                    feed_state = excluded.feed_state, written_at = excluded.written_at
-                WHERE checkpoints.seq IS NULL OR excluded.seq >= checkpoints.seq;
+            UPSERT_CHECKPOINT;
         END IF;
         IF COALESCE(cardinality(p_fed), 0) > 0 THEN
             UPDATE batches SET state = 1 WHERE device_id = p_device AND seq = ANY(p_fed) AND state = 0;
@@ -206,7 +203,7 @@ _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
             error := SQLSTATE || ': ' || SQLERRM;
       END;
     END
-    $fn$"""
+    $fn$""".replace("UPSERT_CHECKPOINT", upsert_checkpoint_sql("p_device", "p_seq", "p_state", "p_feed", "p_at"))
 
 # the calibrator state in its own table, written every checkpoint_samples rather than every
 # cycle (devices.calibrator_state stays, always NULL since v4)
@@ -339,11 +336,15 @@ _CYCLE_SQL = (
 _NOW = "extract(epoch from clock_timestamp())"
 
 
+def _worker_live(owner: str) -> str:
+    """SQL: the worker named by the expression ``owner`` has a heartbeat ahead of now."""
+    return f"EXISTS (SELECT 1 FROM workers w WHERE w.owner = {owner} AND w.until >= {_NOW})"
+
+
 def _lease_live(d: str) -> str:
     """SQL: the lease of the device row aliased ``d`` is held now (taken less than a lease
     time ago, or its owner's heartbeat is still ahead of now)."""
-    return (f"({d}.lease_expires >= {_NOW} OR EXISTS (SELECT 1 FROM workers w WHERE w.owner = {d}.lease_owner"
-            f" AND w.until >= {_NOW}))")
+    return f"({d}.lease_expires >= {_NOW} OR {_worker_live(f'{d}.lease_owner')})"
 
 
 # the dashboard's page of devices: the served calibration's figures read with jsonb operators
@@ -692,8 +693,8 @@ class PostgresStore(GroupCommitStore):
             " ORDER BY preferred DESC, d.updated_at NULLS FIRST LIMIT %(window)s),"
             # the devices taken: preferred, then this worker's own (and those no live worker
             # fed last: new devices, a stopped worker's), then the others; oldest first
-            " r AS (SELECT *, (last_owner IS NULL OR last_owner = %(me)s OR NOT EXISTS (SELECT 1 FROM workers k"
-            f" WHERE k.owner = w.last_owner AND k.until >= {_NOW})) AS own FROM w),"
+            " r AS (SELECT *, (last_owner IS NULL OR last_owner = %(me)s"
+            f" OR NOT {_worker_live('r0.last_owner')}) AS own FROM w AS r0),"
             " c AS (SELECT device_id FROM r ORDER BY preferred DESC, own DESC, updated_at NULLS FIRST"
             " LIMIT %(limit)s),"
             # only those are locked, and taken if still free (another worker may have been first)

@@ -274,18 +274,21 @@ def device_from_row(row: tuple) -> DeviceRecord:
     )
 
 
+def upsert_checkpoint_sql(device_id: str, seq: str, state: str, feed_state: str, written_at: str) -> str:
+    """SQL that writes a device's checkpoint from five value expressions (placeholders, or
+    a PL/pgSQL function's parameters), never an older state over a newer one."""
+    return (f"INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) "
+            f"VALUES ({device_id}, {seq}, {state}, {feed_state}, {written_at}) "
+            "ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state, "
+            "feed_state = excluded.feed_state, written_at = excluded.written_at "
+            "WHERE checkpoints.seq IS NULL OR excluded.seq >= checkpoints.seq")
+
+
 def upsert_checkpoint(conn: Any, placeholder: str, device_id: str, seq: int | None, state: str,
                       feed_state: dict[str, Any], now: float) -> None:
     """Write a device's checkpoint on a connection (``placeholder``: ``?`` for sqlite3,
     ``%s`` for psycopg), in the caller's transaction."""
-    p = placeholder
-    conn.execute(
-        f"INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) VALUES ({p}, {p}, {p}, {p}, {p}) "
-        "ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state, "
-        "feed_state = excluded.feed_state, written_at = excluded.written_at "
-        # never an older state over a newer one
-        "WHERE checkpoints.seq IS NULL OR excluded.seq >= checkpoints.seq",
-        (device_id, seq, state, dumps_json(feed_state), now))
+    conn.execute(upsert_checkpoint_sql(*[placeholder] * 5), (device_id, seq, state, dumps_json(feed_state), now))
 
 
 def with_checkpoint(rec: DeviceRecord, cols: tuple) -> DeviceRecord:
