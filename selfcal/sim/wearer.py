@@ -14,6 +14,7 @@ config (``wear_start_h`` ...) are hours after midnight of each day.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +53,11 @@ def _cdf(probs) -> np.ndarray:
     cdf = (p / p.sum()).cumsum()
     cdf /= cdf[-1]
     return cdf
+
+
+def _nonneg(v: float) -> float:
+    """``np.maximum(v, 0.0)`` of one float (NaN and -0.0 kept, as numpy keeps them)."""
+    return v if (v >= 0.0 or v != v) else 0.0
 
 
 def _pick(cdf: np.ndarray, rng: np.random.Generator) -> int:
@@ -219,13 +225,16 @@ class _Builder:
             return (tilt[0], np.sign(rng.uniform(-1, 1)) * np.pi / 2 + tilt[1])
         return (-self.shoe_pitch + tilt[0], np.pi + tilt[1])
 
+    # The postures are drawn hundreds of thousands of times: plain float arithmetic, in
+    # the order (and so with the results, bit for bit) of the numpy expressions it replaced.
     def stand_posture(self) -> tuple[tuple[float, float], tuple]:
         p, rng = self.cfg.posture, self.rng
-        tilt = np.deg2rad(p.stand_tilt_sd_deg) * rng.standard_normal(2)
+        t0, t1 = rng.standard_normal(2).tolist()
+        c = math.radians(p.stand_tilt_sd_deg)
         w = 0.15 * rng.standard_normal()
         share = rng.uniform(0.8, 1.2)
-        load = tuple(share * np.array([1 + w, 1.0, 1 - w, 1 - w]))
-        return (self.shoe_pitch + tilt[0], tilt[1]), load
+        load = (share * (1 + w), share * 1.0, share * (1 - w), share * (1 - w))
+        return (float(self.shoe_pitch) + c * t0, c * t1), load
 
     def sit_posture(self) -> tuple[tuple[float, float], float, tuple]:
         p, rng = self.cfg.posture, self.rng
@@ -233,21 +242,23 @@ class _Builder:
         f = self.cfg.pressure.sit_factor
         sway = p.sit_sway_sd_mg * 1e-3
         if k == 0:
-            tilt = np.deg2rad(p.sit_flat_tilt_sd_deg) * rng.standard_normal(2)
-            orient = (self.shoe_pitch + tilt[0], tilt[1])
-            load = f * np.array([1.2, 1.0, 0.9, 0.6]) * (1 + 0.2 * rng.standard_normal())
+            t0, t1 = rng.standard_normal(2).tolist()
+            c = math.radians(p.sit_flat_tilt_sd_deg)
+            orient = (float(self.shoe_pitch) + c * t0, c * t1)
+            z = 1 + 0.2 * rng.standard_normal()
+            load = ((f * 1.2) * z, (f * 1.0) * z, (f * 0.9) * z, (f * 0.6) * z)
         elif k == 1:
-            orient = (np.deg2rad(rng.uniform(*p.sit_heel_pitch_deg)), np.deg2rad(5 * rng.standard_normal()))
-            load = f * np.array([2.0, 0.2, 0.0, 0.0])
+            orient = (math.radians(rng.uniform(*p.sit_heel_pitch_deg)), math.radians(5 * rng.standard_normal()))
+            load = (f * 2.0, f * 0.2, f * 0.0, f * 0.0)
         elif k == 2:
-            orient = (np.deg2rad(rng.uniform(*p.sit_toes_pitch_deg)), np.deg2rad(5 * rng.standard_normal()))
-            load = f * np.array([0.0, 0.2, 1.8, 1.5])
+            orient = (math.radians(rng.uniform(*p.sit_toes_pitch_deg)), math.radians(5 * rng.standard_normal()))
+            load = (f * 0.0, f * 0.2, f * 1.8, f * 1.5)
         else:
-            roll = np.deg2rad(rng.uniform(*p.sit_crossed_roll_deg)) * (-1, 1)[int(rng.integers(0, 2))]
-            orient = (np.deg2rad(rng.uniform(-40, 0)), roll)
-            load = np.zeros(4)
+            roll = math.radians(rng.uniform(*p.sit_crossed_roll_deg)) * (-1, 1)[int(rng.integers(0, 2))]
+            orient = (math.radians(rng.uniform(-40, 0)), roll)
+            load = (0.0, 0.0, 0.0, 0.0)
             sway = p.sit_crossed_sway_sd_mg * 1e-3
-        return orient, sway, tuple(np.maximum(load, 0.0))
+        return orient, sway, tuple(_nonneg(v) for v in load)
 
     # -- activities ---------------------------------------------------------------
     def _alternating(self, total: float, quiet: LogNormalDuration, move: LogNormalDuration):
