@@ -557,8 +557,10 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
         gap = np.zeros(n, dtype=bool)
         gap[1:] = ~(dt > 0) | (dt > cfg.max_gap_s)  # NaN steps break too
         # Integer counts per window: exact whatever the chunking.
-        cbad = np.concatenate(([0], np.cumsum(bad, dtype=np.int64)))
-        cgap = np.concatenate(([0], np.cumsum(gap, dtype=np.int64)))
+        cbad = np.zeros(n + 1, dtype=np.int64)
+        cgap = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(bad, out=cbad[1:])
+        np.cumsum(gap, out=cgap[1:])
         ok = (cbad[w:] - cbad[:m] == 0) & (cgap[w:] - cgap[1 : m + 1] == 0)
 
         x0 = x if finite.all() else np.where(finite, x, 0.0)
@@ -650,7 +652,9 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
         block = max(1, _BLOCK_VALUES // (length * x.shape[0]))
         for b0 in range(0, rows.size, block):
             r = rows[b0 : b0 + block]
-            mean[r], sd[r] = _exact_window_stats(x[:3], length, lo[r])
+            # acc and pressure in one call: each window of each channel is reduced on its own
+            ch_mean, ch_sd = _exact_window_stats(x[: 3 + kp], length, lo[r])
+            mean[r], sd[r] = ch_mean[:, :3], ch_sd[:, :3]
             tt = x[-1][lo[r, None] + np.arange(length)]  # (b, length)
             fin = np.isfinite(tt)
             every = fin.all(axis=1)
@@ -659,7 +663,7 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
             for j in np.flatnonzero(~every & fin.any(axis=1)).tolist():  # gaps in temp_c
                 temp_mean[r[j]] = float(np.ascontiguousarray(tt[j][fin[j]]).mean())
             if kp:
-                psd[r] = _exact_window_stats(x[3 : 3 + kp], length, lo[r])[1].max(axis=1)
+                psd[r] = ch_sd[:, 3:].max(axis=1)
     return StillWindows(
         mean_g=mean,
         sd_g=sd,

@@ -92,6 +92,25 @@ class PoseConfig(BaseModel):
         return cls(**(section or {}))
 
 
+def _as_shape(x, shape: tuple[int, ...]) -> np.ndarray:
+    """``x`` as a float array of ``shape`` (a view, not a copy, where it already is one;
+    a scalar or a row is repeated)."""
+    a = np.asarray(x, dtype=float)
+    return a if a.shape == shape else np.broadcast_to(a, shape)
+
+
+def _group_edges(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first, last): (k,) bool, whether each of ``sorted_keys`` starts / ends its run of equal keys."""
+    k = sorted_keys.shape[0]
+    first = np.empty(k, dtype=bool)
+    last = np.empty(k, dtype=bool)
+    if k:
+        np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=first[1:])
+        last[:-1] = first[1:]
+        first[0] = last[-1] = True
+    return first, last
+
+
 def _enc(a: np.ndarray) -> str:
     return base64.b64encode(np.ascontiguousarray(a, dtype="<f8").tobytes()).decode("ascii")
 
@@ -164,13 +183,19 @@ class PoseStore:
     def _reindex(self) -> None:
         self._index = {int(k): i for i, k in enumerate(self.key)}
 
+    def _index_stale(self) -> None:
+        """The keys changed: the key -> row dict is rebuilt when next asked (``_bound`` may
+        merge several times before then)."""
+        self._index = {}
+
     # ------------------------------------------------------------------ keys
     def _keys(self, u: np.ndarray, temp: np.ndarray, t_s: np.ndarray, origin: float | None = None) -> np.ndarray:
         """Cell keys of windows (level 0); time blocks counted from ``origin`` (default the store's)."""
         step = np.radians(self.config.merge_angle_deg)
         g = np.rint(u / step).astype(np.int64) + 64  # 0..128 for step >= ~0.9 deg
-        band = np.where(np.isfinite(temp), np.floor(np.nan_to_num(temp) / self.config.merge_temp_c), 0).astype(np.int64)
-        band = np.where(np.isfinite(temp), np.clip(band + 512, 0, _NO_TEMP_BAND - 1), _NO_TEMP_BAND)
+        has_t = np.isfinite(temp)
+        band = np.where(has_t, np.floor(np.where(has_t, temp, 0.0) / self.config.merge_temp_c), 0).astype(np.int64)
+        band = np.where(has_t, np.minimum(np.maximum(band + 512, 0), _NO_TEMP_BAND - 1), _NO_TEMP_BAND)
         # blocks counted from the first window: a constant shift of the device clock changes nothing
         if origin is None:
             origin = self.t_origin if self.t_origin is not None else 0.0
@@ -191,8 +216,9 @@ class PoseStore:
         full = cache[2]
         return full if rows is None else tuple(x[rows] for x in full)
 
-    def _derived_from(self, s: np.ndarray):
-        """:meth:`_derived` of a statistics table ``s`` (k, N_STATS)."""
+    def _derived_from(self, s: np.ndarray, direction: bool = True):
+        """:meth:`_derived` of a statistics table ``s`` (k, N_STATS); ``direction=False``
+        leaves the mean direction out (None), for the gate, which does not use it."""
         nw = s[:, _NW]
         su = s[:, _SU]
         ubar = su / nw[:, None]
@@ -214,8 +240,9 @@ class PoseStore:
         nu0 = self.config.prior_dof
         v_emp = np.where(dof > 0, ssr / np.maximum(dof, 1.0), 0.0)
         v_win = np.where(nu0 + dof > 0, (nu0 * v_model + dof * v_emp) / np.maximum(nu0 + dof, 1e-12), v_model)
-        direction = su / np.linalg.norm(su, axis=1, keepdims=True)
-        return direction, dbar, v_win, dof
+        if direction:
+            return su / np.linalg.norm(su, axis=1, keepdims=True), dbar, v_win, dof
+        return None, dbar, v_win, dof
 
     # ------------------------------------------------------------------ updates
     def add(self, mean_g, sd_g, count, t_s, temp_c=None, rate_hz: float = 20.0) -> dict[str, int]:
@@ -237,13 +264,14 @@ class PoseStore:
         """
         mean = np.atleast_2d(np.asarray(mean_g, dtype=float))
         k = mean.shape[0]
-        count = np.broadcast_to(np.asarray(count, dtype=float), (k,)).astype(float)
-        t_s = np.broadcast_to(np.asarray(t_s, dtype=float), (k,)).astype(float)
-        temp = np.full(k, np.nan) if temp_c is None else np.broadcast_to(np.asarray(temp_c, dtype=float), (k,)).astype(float)
+        # read-only views where possible: the selection by ``valid`` below copies
+        count = _as_shape(count, (k,))
+        t_s = _as_shape(t_s, (k,))
+        temp = np.full(k, np.nan) if temp_c is None else _as_shape(temp_c, (k,))
         if sd_g is None:
             sd = np.full((k, 3), 3e-3)
         else:
-            sd = np.broadcast_to(np.asarray(sd_g, dtype=float), (k, 3)).astype(float)
+            sd = _as_shape(sd_g, (k, 3))
             sd = np.where(np.isfinite(sd), sd, 3e-3)
         norm = np.sqrt(np.einsum("ij,ij->i", mean, mean)) if k else np.zeros(0)
         valid = np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s) & (count >= 1)
@@ -268,12 +296,19 @@ class PoseStore:
         self.n_gated += out["gated"]
         # accumulate per key
         ukeys, inv = np.unique(key, return_inverse=True)
-        sums = np.zeros((len(ukeys), N_STATS))
-        np.add.at(sums, inv, row)
-        tmin = np.full(len(ukeys), np.inf)
-        tmax = np.full(len(ukeys), -np.inf)
-        np.minimum.at(tmin, inv, t_s)
-        np.maximum.at(tmax, inv, t_s)
+        if len(ukeys) == len(key):  # each key once (the usual batch): no accumulation
+            sums = np.empty((len(ukeys), N_STATS))
+            sums[inv] = row + 0.0  # as np.add.at into zeros makes it (-0.0 becomes 0.0)
+            tmin = np.empty(len(ukeys))
+            tmin[inv] = t_s
+            tmax = tmin
+        else:
+            sums = np.zeros((len(ukeys), N_STATS))
+            np.add.at(sums, inv, row)
+            tmin = np.full(len(ukeys), np.inf)
+            tmax = np.full(len(ukeys), -np.inf)
+            np.minimum.at(tmin, inv, t_s)
+            np.maximum.at(tmax, inv, t_s)
         target = self._rows_of(ukeys)
         exist = target >= 0
         if exist.any():
@@ -309,8 +344,8 @@ class PoseStore:
         k = mean.shape[0]
         if k == 0:
             return np.zeros(0, dtype=np.int64)
-        t_s = np.broadcast_to(np.asarray(t_s, dtype=float), (k,))
-        temp = np.full(k, np.nan) if temp_c is None else np.broadcast_to(np.asarray(temp_c, dtype=float), (k,))
+        t_s = _as_shape(t_s, (k,))
+        temp = np.full(k, np.nan) if temp_c is None else _as_shape(temp_c, (k,))
         norm = np.sqrt(np.einsum("ij,ij->i", mean, mean))
         valid = np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s)
         idx = np.flatnonzero(valid)
@@ -351,14 +386,14 @@ class PoseStore:
             return np.array([self._index.get(int(x), -1) for x in keys], dtype=np.int64)
         heads = np.flatnonzero(first_of_group)
         rows = np.array([self._index.get(int(keys[i]), -1) for i in heads], dtype=np.int64)
-        return np.repeat(rows, np.diff(np.r_[heads, len(keys)]))
+        return np.repeat(rows, np.diff(np.append(heads, len(keys))))
 
     def _gate_one(self, running: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Gate decisions (k,) of windows with norms ``d`` against their cells' running statistics."""
         enough = running[:, _NW] >= self.config.gate_min_windows
         out = np.zeros(len(d), dtype=bool)
         if enough.any():
-            _, dbar, v_win, _ = self._derived_from(running[enough])
+            _, dbar, v_win, _ = self._derived_from(running[enough], direction=False)
             thr = np.maximum(self.config.gate_k * np.sqrt(v_win), self.config.gate_abs_g)
             out[enough] = np.abs(d[enough] - dbar) > thr
         return out
@@ -374,7 +409,7 @@ class PoseStore:
         k = len(key)
         order = np.argsort(key, kind="stable")
         ks, rs, ds = key[order], row[order], d[order]
-        start = np.r_[True, ks[1:] != ks[:-1]]
+        start, last = _group_edges(ks)
         first = np.maximum.accumulate(np.where(start, np.arange(k), 0))
         csum = np.cumsum(rs, axis=0)
         before = csum - rs - (csum[first] - rs[first])  # earlier windows of the same key, this batch
@@ -383,7 +418,6 @@ class PoseStore:
         if (idx >= 0).any():
             pre[idx >= 0] = self.stats[idx[idx >= 0]]
         gated_s = self._gate_one(pre + before, ds)
-        last = np.r_[ks[1:] != ks[:-1], True]
         redo = np.unique(ks[gated_s & ~last])  # a gated window with later windows in its group
         for kk in redo:
             pos = np.flatnonzero(ks == kk)
@@ -425,7 +459,7 @@ class PoseStore:
             self.n_dropped += int(drop.size)
             self.key, self.stats = self.key[keep], self.stats[keep]
             self.t_first, self.t_last = self.t_first[keep], self.t_last[keep]
-            self._reindex()
+            self._index_stale()
 
     def _doubling_straddles(self, key: np.ndarray) -> np.ndarray:
         """(m,) bool: the doubled block of each cell would hold a barrier strictly inside it."""
@@ -453,7 +487,7 @@ class PoseStore:
         ukeys, inv = np.unique(key, return_inverse=True)
         if len(ukeys) == len(key):
             self.key = key
-            self._reindex()
+            self._index_stale()
             return
         stats = np.zeros((len(ukeys), N_STATS))
         np.add.at(stats, inv, self.stats)
@@ -463,7 +497,7 @@ class PoseStore:
         np.maximum.at(tl, inv, self.t_last)
         self.n_merged += len(key) - len(ukeys)
         self.key, self.stats, self.t_first, self.t_last = ukeys, stats, tf, tl
-        self._reindex()
+        self._index_stale()
 
     # ------------------------------------------------------------------ views
     def folds(self) -> np.ndarray:
