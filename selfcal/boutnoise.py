@@ -40,6 +40,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from selfcal.groupsum import sum_by_group
+
 #: fewer window pairs inside bouts than this, or fewer bouts with two windows or more than
 #: MIN_MULTI_BOUTS: the correlation is not estimated (independent noise)
 MIN_PAIRS = 20
@@ -241,8 +243,7 @@ class BoutNoise:
         col = (lambda v: v) if y.ndim == 1 else (lambda v: v[:, None])
         out = col(np.asarray(indep_var_g2, float)) * y
         if self.sigma_bout_g > 0:
-            sums = np.zeros((bouts.n_bouts,) + y.shape[1:])
-            np.add.at(sums, bouts.label, y)
+            sums = sum_by_group(bouts.label, y, bouts.n_bouts)
             out = out + self.sigma_bout_g**2 * sums[bouts.label]
         if self.sigma_ar_g > 0:
             phi = self._phi(bouts)
@@ -462,8 +463,7 @@ def _projection_deltas(q: np.ndarray, sigma_g: np.ndarray, s2: np.ndarray, bouts
         return float(2.0 * np.sum(diq * apply(dq)) - np.sum((diq.T @ apply(diq)) * gram))
 
     def bout_sums(x):
-        sums = np.zeros((bouts.n_bouts, x.shape[1]))
-        np.add.at(sums, bouts.label, x)
+        sums = sum_by_group(bouts.label, x, bouts.n_bouts)
         return sums[bouts.label]
 
     out = {"S": delta(lambda x: s2[:, None] * x), "Z": delta(bout_sums), "I": delta(lambda x: x), "R": 0.0}

@@ -42,6 +42,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from selfcal.errors import InputError
+from selfcal.groupsum import sum_by_group
 from selfcal.models import ErrorModel, Normalizer
 
 # --------------------------------------------------------------------------- config
@@ -919,8 +920,7 @@ def _cluster_sandwich(jw: np.ndarray, rw: np.ndarray, clusters: np.ndarray, lam_
     """Cluster-robust covariance ``A^-1 (sum_c S_c S_c^T + prior precision) A^-1`` (p, p)."""
     score = jw * rw[:, None]
     _, inv = np.unique(clusters, return_inverse=True)
-    sums = np.zeros((int(inv.max()) + 1 if inv.size else 0, jw.shape[1]))
-    np.add.at(sums, inv, score)
+    sums = sum_by_group(inv, score, int(inv.max()) + 1 if inv.size else 0)
     meat = sums.T @ sums + lam_p
     out = a_inv @ meat @ a_inv
     return 0.5 * (out + out.T)

@@ -45,6 +45,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from selfcal.fit import PoseData
+from selfcal.groupsum import sum_by_group
 
 # columns of the statistics table
 _NW, _NS = 0, 1  # windows, samples
@@ -303,8 +304,7 @@ class PoseStore:
             tmin[inv] = t_s
             tmax = tmin
         else:
-            sums = np.zeros((len(ukeys), N_STATS))
-            np.add.at(sums, inv, row)
+            sums = sum_by_group(inv, row, len(ukeys))
             tmin = np.full(len(ukeys), np.inf)
             tmax = np.full(len(ukeys), -np.inf)
             np.minimum.at(tmin, inv, t_s)
@@ -489,8 +489,7 @@ class PoseStore:
             self.key = key
             self._index_stale()
             return
-        stats = np.zeros((len(ukeys), N_STATS))
-        np.add.at(stats, inv, self.stats)
+        stats = sum_by_group(inv, self.stats, len(ukeys))
         tf = np.full(len(ukeys), np.inf)
         tl = np.full(len(ukeys), -np.inf)
         np.minimum.at(tf, inv, self.t_first)

@@ -1,0 +1,36 @@
+"""Sums of rows by group: ``np.add.at`` into zeros, bit for bit, without its cost.
+
+``np.add.at(out, idx, values)`` adds each row of ``values`` to ``out[idx[i]]`` in input
+order; ``np.bincount`` with weights does the same additions in the same order, one
+column at a time, and is several times faster for tables of thousands of rows (the
+pose store's batches and merges, the fit's cluster scores).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def sum_by_group(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.ndarray:
+    """Per-group sums of ``values``, the result of ``np.add.at(zeros, group, values)``.
+
+    Parameters
+    ----------
+    group : ndarray of int, shape (k,) — group of each row, ``0 <= group < n_groups``
+    values : ndarray, shape (k,) or (k, c) — any unit (the sums keep it)
+    n_groups : int
+
+    Returns
+    -------
+    ndarray, shape (n_groups,) or (n_groups, c), float64
+    """
+    values = np.asarray(values, dtype=float)
+    if values.ndim == 1:
+        return np.bincount(group, weights=values, minlength=n_groups).astype(float, copy=False)
+    out = np.empty((n_groups, values.shape[1]))
+    if n_groups == 0:
+        return out
+    cols = np.ascontiguousarray(values.T)
+    for j in range(cols.shape[0]):
+        out[:, j] = np.bincount(group, weights=cols[j], minlength=n_groups)
+    return out
