@@ -112,6 +112,30 @@ def _protocol_config(config: dict, refit_every_days: float) -> dict:
     return cfg
 
 
+#: poses fed at a time to the as-shipped calibrator, which is only timed to 'calibrated'
+TIMED_PIECE_POSES = 256
+
+
+def first_calibrated_h_of(cal: OnlineCalibrator, mean_g, sd_g, n, t_s, temp_c, piece: int = TIMED_PIECE_POSES) -> float | None:
+    """Feed poses to ``cal`` in order, ``piece`` at a time, until a refit publishes
+    ``calibrated``; the time of that refit (h), or None if none did.
+
+    A calibrator's outcomes do not depend on how its poses are split into calls, so
+    stopping at the first piece that publishes ``calibrated`` gives the time that
+    feeding them all would, without the refits that come after it (which nothing reads).
+
+    Parameters
+    ----------
+    mean_g, sd_g : ndarray, shape (k, 3), g; n : (k,) samples; t_s : (k,) s; temp_c : (k,) degC
+    """
+    for i in range(0, len(t_s), piece):
+        sl = slice(i, i + piece)
+        for ev in cal.feed_poses(mean_g[sl], sd_g[sl], n[sl], t_s[sl], temp_c[sl]):
+            if ev["published"] and ev["calibration"]["status"] == "calibrated":
+                return float(ev["t_s"]) / 3600.0
+    return None
+
+
 def _atomic_write(path: Path, text: str) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(text)
@@ -223,10 +247,7 @@ def replay(
                     poses.temp_c[sel])
             events = cal.feed_poses(*args)
             if first_calibrated_h is None:  # the as-shipped calibrator is only timed to 'calibrated'
-                for ev in online.feed_poses(*args):
-                    if ev["published"] and ev["calibration"]["status"] == "calibrated":
-                        first_calibrated_h = float(ev["t_s"]) / 3600.0
-                        break
+                first_calibrated_h = first_calibrated_h_of(online, *args)
         else:
             events = []
             while True:

@@ -174,3 +174,23 @@ def test_a_simulated_bias_step_is_found_online_and_scored_against_the_sensor_as_
         err = np.subtract(final["size_mg"], out["truth"]["bias_step"]["size_mg"])
         assert np.all(np.abs(err) <= 3 * np.asarray(final["sd_mg"]) + 0.05)
         assert out["refits"][-1]["sphere_norm_rms_mg"] < 0.3  # against the offset after the step
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_time_to_calibrated_does_not_depend_on_the_pieces_the_timed_calibrator_is_fed(seed):
+    """The replay feeds the as-shipped calibrator a piece at a time and stops at 'calibrated':
+    the hour must be the one that feeding the whole period at once gives."""
+    from selfcal.calibrator import OnlineCalibrator
+    from selfcal.config import section
+    from selfcal.replay import first_calibrated_h_of
+    from selfcal.sim import SimConfig, Simulation
+
+    cfg = load_config()
+    sim = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(seed), days=10, seed=seed)
+    p = sim.poses()
+    keep = np.all(p.sd_g <= 0.010, axis=1) & (p.t_s < 3 * 86400.0)  # the replay's first period
+    args = (p.mean_g[keep], p.sd_g[keep], p.n[keep], (p.t_s + p.duration_s / 2)[keep], p.temp_c[keep])
+    hours = {piece: first_calibrated_h_of(OnlineCalibrator(cfg, "affine9"), *args, piece=piece)
+             for piece in (len(args[3]), 97, 256)}
+    assert hours[len(args[3])] is not None and 0 < hours[len(args[3])] < 72
+    assert hours[97] == hours[256] == hours[len(args[3])]
