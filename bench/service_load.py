@@ -59,6 +59,20 @@ def insole_stream(rng: np.random.Generator, n: int) -> np.ndarray:
     return offset + a @ np.linalg.inv(matrix).T + rng.normal(0, 2e-3, a.shape)
 
 
+def wear_stream(seed: int, days: float, skip_days: float = 0.0) -> np.ndarray:
+    """(n, 3) raw g: an insole worn ``days`` days by one simulated wearer (selfcal.sim, seed
+    ``seed``), from ``skip_days`` after midnight of day 0: nights on the floor, sitting,
+    standing and walking, as the calibrator meets them in a fleet."""
+    from selfcal.config import load_config, section
+    from selfcal.sim.config import SimConfig
+    from selfcal.sim.simulator import Simulation
+
+    cfg = load_config()
+    ch = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(seed),
+                    days=skip_days + days).samples()
+    return np.ascontiguousarray(ch.acc_g[np.searchsorted(ch.t_s, skip_days * 86400.0):])
+
+
 def encode(fmt: str, seq: int, t: np.ndarray, acc: np.ndarray) -> tuple[bytes, str]:
     if fmt == "binary":
         head = struct.pack("<4sqIHH", b"SCB1", seq, len(t), 0, 0)
@@ -106,11 +120,16 @@ async def load_main(args) -> None:
     host, port = "127.0.0.1", args.port
     rng = np.random.default_rng(args.seed)
     n_batch = int(round(args.batch_s * RATE_HZ))
-    stream = insole_stream(rng, 20000)
+    stream = insole_stream(rng, 20000)  # drawn in every case: the cursors below stay the same
+    if args.data == "wear":
+        stream = wear_stream(args.wear_seed, args.wear_days, args.wear_skip_days)
     steps = [] if args.devices == "none" else [int(x) for x in args.devices.split(",")]
     max_dev = max(steps, default=1)
     seq = [0] * max_dev
     cursor = [int(c) for c in rng.integers(0, len(stream) - n_batch, max_dev)]
+    # each device's clock (s): from --t0-s, spread over --t0-spread-s (its own generator, so
+    # that the data drawn above stay the same with or without a spread)
+    t_start = (args.t0_s + np.random.default_rng([args.seed, 7]).uniform(0.0, args.t0_spread_s, max_dev)).tolist()
     queue: asyncio.Queue = asyncio.Queue()
     state = {"acked": 0, "errors": 0, "active": 0}
 
@@ -120,7 +139,7 @@ async def load_main(args) -> None:
             dev = await queue.get()
             s = seq[dev]
             seq[dev] += 1
-            t = s * args.batch_s + np.arange(n_batch) / RATE_HZ
+            t = t_start[dev] + s * args.batch_s + np.arange(n_batch) / RATE_HZ
             c = cursor[dev]
             cursor[dev] = (c + n_batch) % (len(stream) - n_batch)
             body, ctype = encode(args.format, s, t, stream[c : c + n_batch])
@@ -343,6 +362,16 @@ def main() -> int:
     p.add_argument("--inflight-rate", type=float, default=200.0, help="POST/s offered in the in-flight phase")
     p.add_argument("--inflight-batch", type=int, default=20, help="samples per batch in the in-flight phase")
     p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--data", choices=["sphere", "wear"], default="sphere",
+                   help="sphere: still poses in random directions (40 %%) with motion between, ~1 000 s shared by "
+                        "every device (a new pose cell every few batches: refits every few minutes); wear: one "
+                        "simulated insole wearer (selfcal.sim), each device at its own point of it")
+    p.add_argument("--wear-seed", type=int, default=2, help="--data wear: the wearer's simulation seed")
+    p.add_argument("--wear-days", type=float, default=1.0, help="--data wear: days of wear shared by the devices")
+    p.add_argument("--wear-skip-days", type=float, default=0.0, help="--data wear: start this many days into the wear")
+    p.add_argument("--t0-s", type=float, default=0.0, help="device clock (s) of every device's first sample")
+    p.add_argument("--t0-spread-s", type=float, default=0.0,
+                   help="spread each device's first sample uniformly over this many seconds after --t0-s")
     p.add_argument("--load-only", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
     p.add_argument("--probe-only", action="store_true", help=argparse.SUPPRESS)

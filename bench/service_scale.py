@@ -137,7 +137,9 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
             [sys.executable, str(REPO / "bench" / "service_load.py"), "--load-only", "--port", str(port),
              "--devices", str(args.devices), "--batch-s", str(args.batch_s), "--step-s", str(args.step_s),
              "--warmup-s", str(args.warmup_s), "--connections", str(args.connections), "--get-hz", "100",
-             "--format", args.format, "--inflight-devices", "0", "--seed", "7"],
+             "--format", args.format, "--inflight-devices", "0", "--seed", "7",
+             "--t0-s", repr(args.t0_s), "--t0-spread-s", repr(args.t0_spread_s),
+             "--data", args.data, "--wear-seed", "2", "--wear-days", "1", "--wear-skip-days", repr(args.worn_days)],
             capture_output=True, text=True, timeout=900)
         stop.set()
         wal_s = time.monotonic() - t0
@@ -190,6 +192,16 @@ def main() -> int:
     ap.add_argument("--worn-days", type=float, default=0.0,
                     help="start every device from the state of an insole worn this long (0: empty; a fleet at steady "
                          "state is worn: its states are ~1.2 MB after a week)")
+    ap.add_argument("--data", choices=["wear", "sphere"], default="wear",
+                    help="what the insoles send (bench/service_load.py --data): wear, a day of the simulated wearer "
+                         "and sensor of the worn state (seed 2; with --worn-days, a day after as many days), each device "
+                         "at its own point of it; sphere, the synthetic poses in random "
+                         "directions of the earlier runs, which open a pose cell every few batches and so make every "
+                         "calibrator refit every few minutes (~5x the refit work of wear)")
+    ap.add_argument("--in-step", action="store_true",
+                    help="with --worn-days: every device's clock continues the worn state's at once, so every "
+                         "calibrator's time-based refit comes due in the same seconds (without it, each device's "
+                         "clock resumes at a random point of its refit period, as in a fleet worn for days)")
     ap.add_argument("--checkpoint-samples", type=int, default=None,
                     help="[service] checkpoint_samples of every process (default: the service's; 0: the state at every cycle)")
     args = ap.parse_args()
@@ -202,7 +214,7 @@ def main() -> int:
         return 1
     print(f"selfcal service scale-out: {args.devices} insoles x 20 Hz, {args.batch_s:g}-s batches "
           f"({args.devices * 20:,} samples/s offered, {args.devices / args.batch_s:.0f} req/s), "
-          f"{args.format} batches, {os.cpu_count()} CPUs shared by everything", flush=True)
+          f"{args.format} batches of {args.data} data, {os.cpu_count()} CPUs shared by everything", flush=True)
     results = []
     if args.worn_days > 0:
         import numpy as np
@@ -217,6 +229,14 @@ def main() -> int:
         args.worn = worn_state(cfg, ch, len(ch.t_s), acc_only=True)  # the load sends g only
         print(f"every device starts worn {args.worn_days:g} days: {args.worn[2]} pose cells, "
               f"state {len(args.worn[0]) / 1024:,.0f} KiB", flush=True)
+        # the load's clocks continue the worn stream (no clock reset), each device at its own
+        # point of the calibrator's refit period unless --in-step
+        args.t0_s = float(ch.t_s[-1]) + 1.0
+        args.t0_spread_s = 0.0 if args.in_step else 3600.0 * float(section(cfg, "scheduler")["refit_every_hours"])
+        print(f"device clocks resume {'together' if args.in_step else f'spread over {args.t0_spread_s / 3600:g} h'} "
+              f"after the worn stream", flush=True)
+    else:
+        args.t0_s = args.t0_spread_s = 0.0
     with PgCluster(max_connections=200) as pg, tempfile.TemporaryDirectory(prefix="selfcal-scale-") as tmp:
         configs = [] if args.no_sqlite else [("sqlite, 1 process (embedded refits)", f"{tmp}/scale.db", 1)]
         for n in [int(x) for x in args.procs.split(",")]:
