@@ -82,6 +82,59 @@ def preload_worn(db: str, args) -> None:
         store.close()
 
 
+def tree_cpu_s(roots: list[int]) -> float:
+    """CPU seconds (user + system, with those of waited-for children) used so far by the
+    processes ``roots`` and all their live descendants, from Linux's ``/proc``; NaN where
+    there is none. The difference over a run is what that tier cost, busy or not."""
+    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    procs: dict[int, tuple[int, int]] = {}
+    try:
+        names = os.listdir("/proc")
+    except OSError:
+        return float("nan")
+    for name in names:
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{name}/stat") as f:
+                rest = f.read().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        procs[int(name)] = (int(rest[1]), sum(int(x) for x in rest[11:15]))
+    children: dict[int, list[int]] = {}
+    for pid, (ppid, _) in procs.items():
+        children.setdefault(ppid, []).append(pid)
+    total, todo, seen = 0, [p for p in roots if p in procs], set()
+    while todo:
+        pid = todo.pop()
+        if pid in seen:
+            continue
+        seen.add(pid)
+        total += procs[pid][1]
+        todo += children.get(pid, [])
+    return total / tick if seen else float("nan")
+
+
+def cpu_per_sample(r: dict) -> dict[str, float]:
+    """CPU microseconds a sample, per tier, from a run's CPU seconds: the API and PostgreSQL
+    per sample acknowledged over the run, the workers per sample they fed."""
+    out = {}
+    acked = r["sustained_sps"] * r["run_s"]
+    for tier, cpu in r["cpu_s"].items():
+        n = r["samples_fed"] if tier == "workers" else acked
+        if cpu == cpu and n == n and n > 0 and (tier != "workers" or r["refit_workers"]):
+            out[tier] = cpu / n * 1e6
+    return out
+
+
+def postmaster_pid(pg) -> int | None:
+    """The bench cluster's server process (its children are the backends)."""
+    try:
+        return int((pg.dir / "data" / "postmaster.pid").read_text().split()[0])
+    except (OSError, ValueError, IndexError, TypeError):
+        return None
+
+
 def wal_bytes(db: str) -> float:
     """PostgreSQL's write-ahead-log position, in bytes since its start (NaN for SQLite): the
     difference over a run is every write the database had to persist (batches, versions,
@@ -94,7 +147,7 @@ def wal_bytes(db: str) -> float:
         return float(conn.execute("SELECT pg_wal_lsn_diff(pg_current_wal_lsn(), '0/0')").fetchone()[0])
 
 
-def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dict:
+def run_config(label: str, db: str, procs: int, refit_workers: int, args, pg_pid: int | None = None) -> dict:
     if getattr(args, "worn", None) is not None:
         preload_worn(db, args)
     port = free_port()
@@ -131,6 +184,9 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
                     pass
 
         wal0 = wal_bytes(db)
+        tiers = {"api": [server.pid], "workers": [w.pid for w in workers],
+                 "postgresql": [pg_pid] if pg_pid and db.startswith("postgresql") else []}
+        cpu0 = {k: tree_cpu_s(v) for k, v in tiers.items()}
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
         load = subprocess.run(
@@ -144,6 +200,7 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
         stop.set()
         wal_s = time.monotonic() - t0
         wal = wal_bytes(db) - wal0
+        cpu = {k: tree_cpu_s(v) - cpu0[k] for k, v in tiers.items()}
         rows = [json.loads(line) for line in load.stdout.splitlines() if line.startswith("{")]
         if not rows:
             raise RuntimeError(f"{label}: the load process printed nothing: {load.stderr[-1000:]}")
@@ -159,7 +216,7 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args) -> dic
                  replays=m.get("selfcal_worker_replays_total", float("nan")),
                  replayed=m.get("selfcal_worker_replayed_samples_total", float("nan")),
                  rejected=sum(v for k, v in m.items() if k.startswith("selfcal_rejected_batches_total")),
-                 wal_mb_s=wal / wal_s / 1e6)
+                 wal_mb_s=wal / wal_s / 1e6, cpu_s=cpu, run_s=wal_s)
         return r
     finally:
         stop.set()
@@ -246,7 +303,7 @@ def main() -> int:
             configs.append((f"postgresql, {n} API + {args.refit_workers} worker{nice}",
                             pg.create_database(f"scale_{n}"), n))
         for label, db, n in configs:
-            r = run_config(label, db, n, args.refit_workers, args)
+            r = run_config(label, db, n, args.refit_workers, args, pg_pid=postmaster_pid(pg))
             results.append(r)
             ages = [a for _, a, _ in r["backlog"] if a == a]
             print(f"{label:<40} acked {r['sustained_sps']:>8,.0f} samples/s ({r['req_per_s']:.0f} req/s)  "
@@ -265,6 +322,12 @@ def main() -> int:
                     print(f"    batches rejected (not fed): {r['rejected']:,.0f}", flush=True)
                 print(f"    calibrator states written (checkpoints): {r['checkpoints']:,.0f}; restores that "
                       f"replayed batches: {r['replays']:,.0f} ({r['replayed']:,.0f} samples fed again)", flush=True)
+            r["cpu_us"] = cpu_per_sample(r)
+            if r["cpu_us"]:
+                print("    CPU over the run, cores busy: " + ", ".join(
+                    f"{k} {v / r['run_s']:.2f}" for k, v in r["cpu_s"].items() if v == v) + "; CPU a sample: " + ", ".join(
+                    f"{k} {v:.1f} us" for k, v in r["cpu_us"].items()) + " (workers: a sample fed; the others: acked)",
+                    flush=True)
             if r.get("gc"):
                 print("    garbage-collector pauses of the API process(es) (generation: count, total, over 10 ms): " + "; ".join(
                     f"{g}: {n:.0f}, {tot * 1e3:.0f} ms, {long_:.0f}" for g, (n, tot, long_) in r["gc"].items()), flush=True)
@@ -294,6 +357,14 @@ def main() -> int:
           f"2-core machines besides PostgreSQL. The bottleneck is the refits (detector, pose store and "
           f"least squares in Python, one device at a time per worker). Every process here shared 2 cores "
           f"with the load generator and PostgreSQL, so these per-process figures are floors.")
+    costs = [r["cpu_us"] for r in results if r.get("cpu_us") and "workers" in r["cpu_us"] and "postgresql" in r["cpu_us"]]
+    if costs:
+        best = {k: min(c[k] for c in costs) for k in ("api", "workers", "postgresql")}
+        cores = {k: 2e6 * v / 1e6 for k, v in best.items()}
+        print(f"\nfrom the CPU a sample costs each tier (busy or idle, so not a floor; least over the PostgreSQL runs): "
+              + ", ".join(f"{k} {best[k]:.1f} us -> {cores[k]:.0f} cores" for k in best)
+              + f" for 2 000 000 samples/s: about {sum(cores.values()):.0f} cores in all, "
+              f"{cores['postgresql']:.0f} of them PostgreSQL's (one server or several, sharded by device).")
     return 0
 
 
