@@ -6,9 +6,13 @@ In one run, on loopback: for each configuration a fresh database and a real
 process of ``bench/service_load.py`` (N insoles at 20 Hz, open loop, 20-s batches,
 32 keep-alive connections, a GET prober at 100 Hz in its own process, as an app is).
 It prints samples/s acknowledged, GET p50/p99 (and those of GETs sent from inside the
-load loop, which wait behind its senders), and the refit backlog (age of the oldest batch not yet fed) sampled from
-``/metrics`` every 2 s, then a projection of the machines needed for 100 000 insoles
-from the measured per-core figures.
+load loop, which wait behind its senders), the refit backlog (age of the oldest batch not
+yet fed) sampled from ``/metrics`` every 2 s, and the CPU each tier used (the API
+processes, the workers, PostgreSQL's server and backends, from ``/proc``); then a
+projection of the machines needed for 100 000 insoles from the per-process figures and
+from the CPU a sample costs each tier. The insoles send a simulated wearer's day
+(``--data wear``) or synthetic poses in random directions (``--data sphere``, a worst case
+for the refits).
 
     python bench/service_scale.py                                  # 10 000 devices, 20-s batches
     python bench/service_scale.py --devices 2000 --step-s 10 --procs 1,2
