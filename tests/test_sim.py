@@ -452,3 +452,14 @@ def test_the_efficient_reference_knows_a_simulated_step():
     # the calibration that was true before the step is further off the sensor as it now is
     scorer = TruthScorer(truth, "affine9")
     assert scorer.sphere_rms_mg(scorer.truth_u, 4 * 86400.0) > 1.5 * ref["oracle_mg"]
+
+
+def test_the_planners_scalar_nonneg_is_numpys_maximum_with_zero():
+    """The postures are drawn in plain floats; their clamp must give np.maximum's bits."""
+    from selfcal.sim.wearer import _nonneg
+
+    values = [-0.0, 0.0, -1.0, 2.0, float("nan"), float("inf"), -float("inf"), 5e-324, -5e-324, -1e-300]
+    for v in values:
+        want = float(np.maximum(np.array([v] * 33), 0.0)[7])  # the array loop, as the planner used
+        got = _nonneg(v)
+        assert np.signbit(got) == np.signbit(want) and (got == want or (got != got and want != want)), v

@@ -56,8 +56,8 @@ def _cdf(probs) -> np.ndarray:
 
 
 def _nonneg(v: float) -> float:
-    """``np.maximum(v, 0.0)`` of one float (NaN and -0.0 kept, as numpy keeps them)."""
-    return v if (v >= 0.0 or v != v) else 0.0
+    """``np.maximum(v, 0.0)`` of one float: NaN kept, -0.0 made 0.0 (as numpy's does)."""
+    return v if (v > 0.0 or v != v) else 0.0
 
 
 def _pick(cdf: np.ndarray, rng: np.random.Generator) -> int:
