@@ -297,9 +297,12 @@ class OnlineCalibrator:
         i = 0
         while i < k:
             # add up to the window where the scheduler could fire: few steps, same result
-            j = min(k, i + self._room(mean_g[i:], t_s[i:], None if temp is None else temp[i:]))
+            room, need_cells = self._room(t_s[i:])
+            j = min(k, i + room)
             stats = self.store.add(mean_g[i:j], None if sd is None else sd[i:j], n[i:j], t_s[i:j],
-                                   None if temp is None else temp[i:j], rate_hz=self.det_cfg.rate_hz)
+                                   None if temp is None else temp[i:j], rate_hz=self.det_cfg.rate_hz,
+                                   max_new_cells=need_cells)
+            j = i + stats["consumed"]
             self.new_since_refit += stats["new_info"]
             self.windows_since_refit += stats["added"]
             self.t_last_s = max(self.t_last_s if self.t_last_s is not None else -np.inf, float(np.max(t_s[i:j])))
@@ -308,8 +311,10 @@ class OnlineCalibrator:
             i = j
         return events
 
-    def _room(self, mean_g: np.ndarray, t_s: np.ndarray, temp_c: np.ndarray | None) -> int:
-        """Windows of this batch that can be added before the scheduler could fire (>= 1)."""
+    def _room(self, t_s: np.ndarray) -> tuple[int, int]:
+        """(windows of this batch that can be added before the scheduler could fire on a
+        count of windows or on time, >= 1; new cells after which it could fire, >= 1: the
+        pose store stops there, outlier twins included)."""
         s = self.sched_cfg
         k = len(t_s)
         if self.current is None:
@@ -323,10 +328,7 @@ class OnlineCalibrator:
                 late = np.flatnonzero(t_s - self.last_refit_t_s >= s.refit_every_hours * 3600.0)
                 if late.size:
                     room = min(room, int(late[0]) + 1)
-        fresh = self.store.new_cell_positions(mean_g[:room], t_s[:room], None if temp_c is None else temp_c[:room])
-        if fresh.size >= need_cells:
-            room = min(room, int(fresh[need_cells - 1]) + 1)
-        return int(max(1, min(room, k)))
+        return int(max(1, min(room, k))), int(need_cells)
 
     def _refit_needs(self) -> tuple[int, int]:
         """New cells and new windows that make a refit due (the larger of the count and the fraction)."""

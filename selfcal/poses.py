@@ -246,7 +246,8 @@ class PoseStore:
         return None, dbar, v_win, dof
 
     # ------------------------------------------------------------------ updates
-    def add(self, mean_g, sd_g, count, t_s, temp_c=None, rate_hz: float = 20.0) -> dict[str, int]:
+    def add(self, mean_g, sd_g, count, t_s, temp_c=None, rate_hz: float = 20.0,
+            max_new_cells: int | None = None) -> dict[str, int]:
         """Add still windows (normalised units, ~g).
 
         Parameters
@@ -257,12 +258,44 @@ class PoseStore:
         t_s : ndarray, shape (k,), s — window centre times
         temp_c : ndarray, shape (k,), degC, or None
         rate_hz : float — sample rate, Hz (a window lasts ``count / rate_hz`` s)
+        max_new_cells : int, optional — stop after the window that opens this many new
+            cells (an outlier twin counts: it is a cell of its own); None adds them all
 
         Returns
         -------
-        dict with ``added`` (windows stored), ``new_cells``, ``gated`` and ``new_info``
-        (new cells, the unit the scheduler counts).
+        dict with ``added`` (windows stored), ``new_cells``, ``gated``, ``new_info``
+        (new cells, the unit the scheduler counts) and ``consumed`` (the leading windows
+        of the input that were taken: all of them unless ``max_new_cells`` stopped it).
+
+        The store is bounded (``max_cells``) right after the window that takes it past
+        the bound, as it would be if the windows came one at a time. So with the caller's
+        scheduler stopping at ``max_new_cells``, no outcome depends on how a stream of
+        windows is split into calls.
         """
+        mean = np.atleast_2d(np.asarray(mean_g, dtype=float))
+        k = mean.shape[0]
+        count = _as_shape(count, (k,))
+        t_s = _as_shape(t_s, (k,))
+        temp = None if temp_c is None else _as_shape(temp_c, (k,))
+        sd = None if sd_g is None else _as_shape(sd_g, (k, 3))
+        out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0, "consumed": 0}
+        i = 0
+        while i < k or k == 0:
+            left = None if max_new_cells is None else max(int(max_new_cells) - out["new_cells"], 1)
+            part = self._add_part(mean[i:], None if sd is None else sd[i:], count[i:], t_s[i:],
+                                  None if temp is None else temp[i:], rate_hz, left)
+            for name in ("added", "new_cells", "gated", "new_info"):
+                out[name] += part[name]
+            i += part["consumed"]
+            if k == 0 or (max_new_cells is not None and out["new_cells"] >= max_new_cells):
+                break
+        out["consumed"] = i
+        return out
+
+    def _add_part(self, mean_g, sd_g, count, t_s, temp_c, rate_hz: float, max_new_cells: int | None) -> dict[str, int]:
+        """:meth:`add` up to the window that opens ``max_new_cells`` new cells or takes the
+        store past ``max_cells`` (then bounded), whichever comes first; ``consumed``: the
+        leading windows of the input it took."""
         mean = np.atleast_2d(np.asarray(mean_g, dtype=float))
         k = mean.shape[0]
         # read-only views where possible: the selection by ``valid`` below copies
@@ -276,9 +309,10 @@ class PoseStore:
             sd = np.where(np.isfinite(sd), sd, 3e-3)
         norm = np.sqrt(np.einsum("ij,ij->i", mean, mean)) if k else np.zeros(0)
         valid = np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s) & (count >= 1)
-        out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0}
+        out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0, "consumed": k}
         if not valid.any():
             return out
+        valid_idx = np.flatnonzero(valid)
         mean, sd, count, t_s, temp, norm = mean[valid], sd[valid], count[valid], t_s[valid], temp[valid], norm[valid]
         u = mean / norm[:, None]
         d = norm - 1.0
@@ -293,6 +327,20 @@ class PoseStore:
         gated = self._gate(key, row, d)
         if gated.any():
             key = key + gated.astype(np.int64)
+        # the windows up to the one that opens the last new cell allowed (the caller's, or the
+        # one past max_cells): the gate's decisions for them do not depend on later windows
+        cap = self.config.max_cells + 1 - len(self)
+        if max_new_cells is not None:
+            cap = min(cap, int(max_new_cells))
+        cap = max(cap, 1)
+        _, first = np.unique(key, return_index=True)
+        if first.size >= cap:
+            first = np.sort(first)
+            fresh = first[self._rows_of(key[first]) < 0]
+            if fresh.size >= cap and int(fresh[cap - 1]) + 1 < len(key):
+                cut = int(fresh[cap - 1]) + 1
+                key, row, t_s, gated = key[:cut], row[:cut], t_s[:cut], gated[:cut]
+                out["consumed"] = int(valid_idx[cut - 1]) + 1
         out["gated"] = int(gated.sum())
         self.n_gated += out["gated"]
         # accumulate per key
@@ -333,32 +381,6 @@ class PoseStore:
         if len(self) > self.config.max_cells:
             self._bound()
         return out
-
-    def new_cell_positions(self, mean_g, t_s, temp_c=None) -> np.ndarray:
-        """Indices (sorted) of the windows that would open a new cell if added in order.
-
-        Used by the scheduler to add a batch in as few steps as possible; the gate's
-        outlier twins are not foreseen (they only make a refit come later than this).
-        """
-        mean = np.atleast_2d(np.asarray(mean_g, dtype=float))
-        k = mean.shape[0]
-        if k == 0:
-            return np.zeros(0, dtype=np.int64)
-        t_s = _as_shape(t_s, (k,))
-        temp = np.full(k, np.nan) if temp_c is None else _as_shape(temp_c, (k,))
-        norm = np.sqrt(np.einsum("ij,ij->i", mean, mean))
-        valid = np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s)
-        idx = np.flatnonzero(valid)
-        if idx.size == 0:
-            return idx
-        origin = self.t_origin if self.t_origin is not None else float(t_s[idx[0]])
-        key = self._keys(mean[idx] / norm[idx, None], temp[idx], t_s[idx], origin)
-        if not self._index and len(self):
-            self._reindex()
-        _, first = np.unique(key, return_index=True)
-        first = np.sort(first)
-        fresh = np.array([int(key[i]) not in self._index for i in first], dtype=bool)
-        return idx[first[fresh]]
 
     @staticmethod
     def _rows(u, d, vn, count, t_s, temp) -> np.ndarray:

@@ -253,3 +253,72 @@ def test_a_change_of_pressure_channels_starts_a_new_stream_instead_of_refusing_e
     assert runs[0] == runs[1]
     n_first, n_samples, n_cells, published = runs[0]
     assert n_samples == len(t) and n_cells > n_first > 0 and published
+
+
+def _poses_in_pieces(cal, poses, piece):
+    events = []
+    k = len(poses[3])
+    for i in range(0, k, piece):
+        events += cal.feed_poses(*[None if a is None else a[i:i + piece] for a in poses])
+    return events
+
+
+def _twin_poses(seed):
+    """Poses whose 8 new cells after the first fit include an outlier twin (a window far
+    off its cell's norm, stored apart), the one new cell the scheduler cannot see coming
+    from the directions alone."""
+    rng = np.random.default_rng(seed)
+    dirs = rng.standard_normal((40, 3))
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    seq = [(i, 1.0) for _ in range(5) for i in range(6)]  # 6 cells x 5 windows: the first fit
+    seq += [(i, 1.0) for i in range(6, 13)] + [(0, 1.2)] + [(1, 1.0)] * 5 + [(i, 1.0) for i in range(13, 40)]
+    k = len(seq)
+    mean = np.array([dirs[i] * norm for i, norm in seq]) + 1e-4 * rng.standard_normal((k, 3))
+    return mean, np.full((k, 3), 2e-3), np.full(k, 40.0), 1000.0 + 10.0 * np.arange(k), np.full(k, 25.0)
+
+
+def _outcomes(events):
+    return [(e["t_s"], e["published"], e["reason"], e["calibration"]["status"] if e["published"] else None)
+            for e in events]
+
+
+def test_an_outlier_twin_makes_the_refit_at_the_same_pose_however_poses_are_split():
+    """A refit is due at the 8th new cell; an outlier twin is one. Fed whole, the pose store
+    used to take the batch up to the next foreseen new cell, so the refit came later."""
+    from selfcal.config import load_config
+
+    for seed in (0, 1, 2):
+        poses = _twin_poses(seed)
+        runs = {}
+        for piece in (len(poses[3]), 38, 7, 1):
+            cal = OnlineCalibrator(load_config(None), "affine9")
+            runs[piece] = (_outcomes(_poses_in_pieces(cal, poses, piece)), cal.store.n_gated)
+        assert runs[1][1] == 1  # the twin is there
+        assert all(r == runs[1] for r in runs.values()), (seed, runs)
+
+
+def test_the_bound_on_cells_falls_on_the_same_window_however_poses_are_split():
+    """Past ``max_cells`` the store coarsens (and may drop) its oldest cells at once; fed
+    whole, it did so after the whole batch and kept other cells than one window at a time."""
+    from selfcal.config import load_config
+
+    cfg = load_config(None)
+    cfg["poses"] = dict(cfg.get("poses", {}), max_cells=16)
+    rng = np.random.default_rng(5)
+    k = 400
+    dirs = rng.standard_normal((60, 3))
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    mean = dirs[rng.integers(0, 60, k)] * (1 + 1e-3 * rng.standard_normal((k, 1)))
+    poses = (mean, np.full((k, 3), 2e-3), np.full(k, 40.0), 600.0 * np.arange(k), 20.0 + 5 * rng.random(k))
+    runs = {}
+    for piece in (k, 64, 1):
+        cal = OnlineCalibrator(cfg, "affine9")
+        events = _poses_in_pieces(cal, poses, piece)
+        runs[piece] = (_outcomes(events), cal.store)
+    ref_events, ref = runs[1]
+    assert ref.n_merged > 0 and len(ref) <= 16
+    for piece, (events, store) in runs.items():
+        assert events == ref_events, piece
+        assert np.array_equal(store.key, ref.key), piece
+        np.testing.assert_allclose(store.stats, ref.stats, rtol=1e-12, atol=1e-12)
+        assert (store.n_merged, store.n_dropped, store.n_gated) == (ref.n_merged, ref.n_dropped, ref.n_gated)
