@@ -68,9 +68,10 @@ def wear_stream(seed: int, days: float, skip_days: float = 0.0) -> np.ndarray:
     from selfcal.sim.simulator import Simulation
 
     cfg = load_config()
-    ch = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(seed),
-                    days=skip_days + days).samples()
-    return np.ascontiguousarray(ch.acc_g[np.searchsorted(ch.t_s, skip_days * 86400.0):])
+    sim = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(seed), days=skip_days + days)
+    # streamed an hour at a time: only the days sent are held (a week skipped is not a week in memory)
+    kept = [c.acc_g[c.t_s >= skip_days * 86400.0] for c in sim.iter_samples(chunk_s=3600)]
+    return np.ascontiguousarray(np.concatenate(kept))
 
 
 def encode(fmt: str, seq: int, t: np.ndarray, acc: np.ndarray) -> tuple[bytes, str]:

@@ -25,6 +25,11 @@ def sum_by_group(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.nda
     ndarray, shape (n_groups,) or (n_groups, c), float64
     """
     values = np.asarray(values, dtype=float)
+    group = np.asarray(group)
+    if group.shape != values.shape[:1]:
+        raise ValueError(f"sum_by_group: {group.shape[0] if group.ndim else 'no'} groups for {values.shape[0]} rows")
+    if group.size and (group.min() < 0 or group.max() >= n_groups):
+        raise IndexError(f"sum_by_group: groups must be 0 .. {n_groups - 1}, got {group.min()} .. {group.max()}")
     if values.ndim == 1:
         return np.bincount(group, weights=values, minlength=n_groups).astype(float, copy=False)
     out = np.empty((n_groups, values.shape[1]))

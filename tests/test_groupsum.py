@@ -26,3 +26,11 @@ def test_sums_are_those_of_add_at_bit_for_bit(seed, shape):
 def test_empty_groups_and_no_groups():
     assert sum_by_group(np.array([2]), np.array([[1.0, -2.0]]), 4).tolist() == [[0, 0], [0, 0], [1, -2], [0, 0]]
     assert sum_by_group(np.zeros(0, np.int64), np.zeros((0, 3)), 0).shape == (0, 3)
+
+
+def test_a_group_outside_the_range_is_refused_as_add_at_refuses_it():
+    for bad in ([0, 3], [-1, 0]):
+        with pytest.raises(IndexError):
+            sum_by_group(np.array(bad), np.ones((2, 2)), 3)
+    with pytest.raises(ValueError):
+        sum_by_group(np.array([0, 1, 1]), np.ones((2, 2)), 3)
