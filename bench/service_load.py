@@ -121,7 +121,7 @@ async def load_main(args) -> None:
     host, port = "127.0.0.1", args.port
     rng = np.random.default_rng(args.seed)
     n_batch = int(round(args.batch_s * RATE_HZ))
-    stream = insole_stream(rng, 20000)  # drawn in every case: the cursors below stay the same
+    stream = insole_stream(rng, 20000)  # drawn in every case, so the generator's next draws do not depend on --data
     if args.data == "wear":
         stream = wear_stream(args.wear_seed, args.wear_days, args.wear_skip_days)
     steps = [] if args.devices == "none" else [int(x) for x in args.devices.split(",")]

@@ -295,18 +295,12 @@ class PoseStore:
     def _add_part(self, mean_g, sd_g, count, t_s, temp_c, rate_hz: float, max_new_cells: int | None) -> dict[str, int]:
         """:meth:`add` up to the window that opens ``max_new_cells`` new cells or takes the
         store past ``max_cells`` (then bounded), whichever comes first; ``consumed``: the
-        leading windows of the input it took."""
-        mean = np.atleast_2d(np.asarray(mean_g, dtype=float))
+        leading windows of the input it took. The inputs are :meth:`add`'s, already float
+        arrays of their shapes (read-only views: the selection by ``valid`` below copies)."""
+        mean = mean_g
         k = mean.shape[0]
-        # read-only views where possible: the selection by ``valid`` below copies
-        count = _as_shape(count, (k,))
-        t_s = _as_shape(t_s, (k,))
-        temp = np.full(k, np.nan) if temp_c is None else _as_shape(temp_c, (k,))
-        if sd_g is None:
-            sd = np.full((k, 3), 3e-3)
-        else:
-            sd = _as_shape(sd_g, (k, 3))
-            sd = np.where(np.isfinite(sd), sd, 3e-3)
+        temp = np.full(k, np.nan) if temp_c is None else temp_c
+        sd = np.full((k, 3), 3e-3) if sd_g is None else np.where(np.isfinite(sd_g), sd_g, 3e-3)
         norm = np.sqrt(np.einsum("ij,ij->i", mean, mean)) if k else np.zeros(0)
         valid = np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s) & (count >= 1)
         out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0, "consumed": k}
@@ -333,18 +327,19 @@ class PoseStore:
         if max_new_cells is not None:
             cap = min(cap, int(max_new_cells))
         cap = max(cap, 1)
-        _, first = np.unique(key, return_index=True)
-        if first.size >= cap:
-            first = np.sort(first)
-            fresh = first[self._rows_of(key[first]) < 0]
-            if fresh.size >= cap and int(fresh[cap - 1]) + 1 < len(key):
-                cut = int(fresh[cap - 1]) + 1
+        ukeys, first, inv = np.unique(key, return_index=True, return_inverse=True)
+        target = self._rows_of(ukeys)
+        if int(np.count_nonzero(target < 0)) >= cap:
+            fresh = np.sort(first[target < 0])
+            cut = int(fresh[cap - 1]) + 1
+            if cut < len(key):
                 key, row, t_s, gated = key[:cut], row[:cut], t_s[:cut], gated[:cut]
                 out["consumed"] = int(valid_idx[cut - 1]) + 1
+                ukeys, inv = np.unique(key, return_inverse=True)
+                target = self._rows_of(ukeys)
         out["gated"] = int(gated.sum())
         self.n_gated += out["gated"]
         # accumulate per key
-        ukeys, inv = np.unique(key, return_inverse=True)
         if len(ukeys) == len(key):  # each key once (the usual batch): no accumulation
             sums = np.empty((len(ukeys), N_STATS))
             sums[inv] = row + 0.0  # as np.add.at into zeros makes it (-0.0 becomes 0.0)
@@ -357,7 +352,6 @@ class PoseStore:
             tmax = np.full(len(ukeys), -np.inf)
             np.minimum.at(tmin, inv, t_s)
             np.maximum.at(tmax, inv, t_s)
-        target = self._rows_of(ukeys)
         exist = target >= 0
         if exist.any():
             t = target[exist]
