@@ -162,6 +162,8 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args, pg_pid
                SELFCAL_METRICS_DIR=metrics_dir)
     if args.checkpoint_samples is not None:
         env["SELFCAL_CHECKPOINT_SAMPLES"] = str(args.checkpoint_samples)
+    if args.patch_fraction is not None:
+        env["SELFCAL_CHECKPOINT_PATCH_FRACTION"] = str(args.patch_fraction)
     cmd = [sys.executable, "-m", "selfcal.cli", "serve", "--db", db, "--port", str(port), "--log-level", "warning"]
     if db.startswith("postgresql"):
         cmd += ["--workers", str(procs), "--no-refit"]
@@ -223,6 +225,8 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args, pg_pid
                  cycles=m.get("selfcal_worker_cycles_total", float("nan")),
                  samples_fed=m.get("selfcal_worker_samples_total", float("nan")),
                  checkpoints=m.get("selfcal_worker_checkpoints_total", float("nan")),
+                 patches=m.get("selfcal_worker_checkpoint_patches_total", float("nan")),
+                 checkpoint_mb=m.get("selfcal_worker_checkpoint_bytes_total", float("nan")) / 1e6,
                  replays=m.get("selfcal_worker_replays_total", float("nan")),
                  replayed=m.get("selfcal_worker_replayed_samples_total", float("nan")),
                  rejected=sum(v for k, v in m.items() if k.startswith("selfcal_rejected_batches_total")),
@@ -271,6 +275,9 @@ def main() -> int:
                          "clock resumes at a random point of its refit period, as in a fleet worn for days)")
     ap.add_argument("--checkpoint-samples", type=int, default=None,
                     help="[service] checkpoint_samples of every process (default: the service's; 0: the state at every cycle)")
+    ap.add_argument("--patch-fraction", type=float, default=None,
+                    help="[service] checkpoint_patch_fraction of every process (default: the service's; 0: every "
+                         "checkpoint in full)")
     args = ap.parse_args()
 
     from pg_cluster import PgCluster, unavailable
@@ -330,7 +337,8 @@ def main() -> int:
                       f"({r['samples_fed'] / r['cycles'] / (args.batch_s * 20):.1f} batches a cycle)", flush=True)
                 if r.get("rejected"):
                     print(f"    batches rejected (not fed): {r['rejected']:,.0f}", flush=True)
-                print(f"    calibrator states written (checkpoints): {r['checkpoints']:,.0f}; restores that "
+                print(f"    calibrator states written (checkpoints): {r['checkpoints']:,.0f} ({r['patches']:,.0f} as "
+                      f"patches against a stored base; {r['checkpoint_mb']:,.1f} MB in all); restores that "
                       f"replayed batches: {r['replays']:,.0f} ({r['replayed']:,.0f} samples fed again)", flush=True)
             r["cpu_us"] = cpu_per_sample(r)
             if r["cpu_us"]:

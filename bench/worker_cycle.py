@@ -82,6 +82,9 @@ def main(argv=None) -> int:
                     help="comma-separated [service] checkpoint_samples to run, paired (0: the state every cycle)")
     ap.add_argument("--backends", default="sqlite",
                     help="comma-separated: sqlite, postgresql (a throw-away loopback cluster, tests/pg_cluster.py)")
+    ap.add_argument("--patch-fractions", default="0.25",
+                    help="comma-separated [service] checkpoint_patch_fraction to run, paired (0: every checkpoint "
+                         "in full)")
     ap.add_argument("--seed", type=int, default=2)
     args = ap.parse_args(argv)
 
@@ -113,16 +116,28 @@ def main(argv=None) -> int:
                 if why:
                     raise SystemExit(f"PostgreSQL unavailable: {why}")
                 pg = PgCluster().start()
-            for i, every in enumerate(modes):
+            fractions = [float(x) for x in args.patch_fractions.split(",")]
+            for i, (every, fraction) in enumerate((e, f) for e in modes for f in fractions):
                 db = pg.create_database(f"cycle_{i}") if backend == "postgresql" else None
-                run(cfg, ch, i0, args, every, worn, backend, db)
+                run(cfg, ch, i0, args, every, worn, backend, db, fraction)
     finally:
         if pg is not None:
             pg.stop()
     return 0
 
 
-def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db: str | None) -> None:
+def wal_bytes(db: str | None) -> float:
+    """PostgreSQL's write-ahead log position in bytes (NaN on SQLite)."""
+    if db is None:
+        return float("nan")
+    import psycopg
+
+    with psycopg.connect(db, autocommit=True) as conn:
+        return float(conn.execute("SELECT pg_wal_lsn_diff(pg_current_wal_lsn(), '0/0')").fetchone()[0])
+
+
+def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db: str | None,
+        patch_fraction: float = 0.25) -> None:
     from selfcal.calibrator import OnlineCalibrator
     from selfcal.config import section
     from selfcal_service.main import make_worker, open_store
@@ -132,8 +147,7 @@ def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db:
     from selfcal_service.worker import CalibratorFactory
 
     timers = {"feed": 0.0, "to_json": 0.0}
-    written = [0]
-    feed0, json0 = OnlineCalibrator.feed_samples, OnlineCalibrator.to_json
+    feed0, json0, patch0 = OnlineCalibrator.feed_samples, OnlineCalibrator.to_json, OnlineCalibrator.checkpoint_patch
 
     def timed(name, fn):
         def run_(*a, **k):
@@ -145,13 +159,15 @@ def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db:
         return run_
 
     def to_json(self):
-        out = timed("to_json", json0)(self)
-        written[0] += len(out)
-        return out
+        return timed("to_json", json0)(self)
+
+    def checkpoint_patch(self, base):
+        return timed("to_json", patch0)(self, base)
 
     with tempfile.TemporaryDirectory() as tmp:
         settings = load_settings(section(cfg, "service"), environ={},
-                                 overrides={"db_path": db or f"{tmp}/cycle.db", "checkpoint_samples": checkpoint_samples})
+                                 overrides={"db_path": db or f"{tmp}/cycle.db", "checkpoint_samples": checkpoint_samples,
+                                            "checkpoint_patch_fraction": patch_fraction})
         store = open_store(settings)
         store.open()
         try:
@@ -171,16 +187,24 @@ def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db:
                     preload(store, f"dev{d:04d}", worn)
             OnlineCalibrator.feed_samples = timed("feed", feed0)
             OnlineCalibrator.to_json = to_json
+            OnlineCalibrator.checkpoint_patch = checkpoint_patch
             for d in range(args.devices):  # every device's calibrator restored (not timed)
                 worker._calibrator(store.load_device(f"dev{d:04d}", with_state=False))
             timers.update(feed=0.0, to_json=0.0)
-            written[0] = 0
+            written0 = worker.metrics.get("selfcal_worker_checkpoint_bytes_total")
+            patches0 = worker.metrics.get("selfcal_worker_checkpoint_patches_total")
+            ckpts0 = worker.metrics.get("selfcal_worker_checkpoints_total")
+            wal0 = wal_bytes(db)
             t0, c0, m0 = time.perf_counter(), time.process_time(), machine_busy_s()
             for _ in range(args.batches):
                 for d in range(args.devices):
                     worker.process(f"dev{d:04d}")
             wall = time.perf_counter() - t0
             cpu, busy = time.process_time() - c0, machine_busy_s() - m0
+            wal = wal_bytes(db) - wal0
+            written = worker.metrics.get("selfcal_worker_checkpoint_bytes_total") - written0
+            patches = worker.metrics.get("selfcal_worker_checkpoint_patches_total") - patches0
+            ckpts = worker.metrics.get("selfcal_worker_checkpoints_total") - ckpts0
             assert worker.replays == 0, "a worker that keeps its calibrators never replays"
             # what a takeover costs: a fresh worker restores every device (checkpoint + replay)
             fresh = make_worker(store, factory, Metrics(), settings)
@@ -192,16 +216,19 @@ def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db:
             replayed = fresh.metrics.get("selfcal_worker_replayed_samples_total") / args.devices
         finally:
             OnlineCalibrator.feed_samples, OnlineCalibrator.to_json = feed0, json0
+            OnlineCalibrator.checkpoint_patch = patch0
             store.close()
     cycles = args.devices * args.batches
     rest = wall - timers["feed"] - timers["to_json"]
-    print(f"{backend}, checkpoint_samples {checkpoint_samples}: {cycles} cycles of {args.batch_samples} samples in {wall:.2f} s: "
+    print(f"{backend}, checkpoint_samples {checkpoint_samples}, patch fraction {patch_fraction:g}: {cycles} cycles of {args.batch_samples} samples in {wall:.2f} s: "
           f"{wall / cycles * 1e3:.2f} ms a cycle, {cycles * args.batch_samples / wall:,.0f} samples/s; CPU a cycle "
           f"{cpu / cycles * 1e3:.2f} ms in this process, {busy / cycles * 1e3:.2f} ms on the machine (the database "
           f"included); calibrator feed "
-          f"{timers['feed'] / cycles * 1e3:.2f} ms, state to JSON {timers['to_json'] / cycles * 1e3:.2f} ms, the rest "
-          f"(database, decoding, bookkeeping) {rest / cycles * 1e3:.2f} ms; state written {written[0] / cycles / 1024:,.1f} "
-          f"KiB a cycle; a restore {restore * 1e3:.1f} ms (replaying {replayed:,.0f} samples)")
+          f"{timers['feed'] / cycles * 1e3:.2f} ms, state serialised (full or patch) {timers['to_json'] / cycles * 1e3:.2f} ms, the rest "
+          f"(database, decoding, bookkeeping) {rest / cycles * 1e3:.2f} ms; {ckpts:,.0f} checkpoints ({patches:,.0f} "
+          f"patches), state written {written / cycles / 1024:,.1f} KiB a cycle"
+          + ("" if wal != wal else f", write-ahead log {wal / cycles / 1024:,.1f} KiB a cycle")
+          + f"; a restore {restore * 1e3:.1f} ms (replaying {replayed:,.0f} samples)")
 
 
 if __name__ == "__main__":

@@ -42,6 +42,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.special import chdtri as _chi2_isf  # chi2.ppf(q, k) = chdtri(k, 1 - q); scipy.stats costs 0.5 s to import
 
+from selfcal.checkpoint import CheckpointBase, apply_patch, make_patch
+from selfcal.checkpoint import base_of as checkpoint_base_of
 from selfcal.config import section
 from selfcal.errors import InputError
 from selfcal.fit import (
@@ -969,8 +971,9 @@ class OnlineCalibrator:
                         "version": version, "calibration": cal}
 
     # ------------------------------------------------------------------ state
-    def state(self) -> dict:
-        """The whole state as a JSON-serialisable dict."""
+    def state(self, store_rows: bool = True) -> dict:
+        """The whole state as a JSON-serialisable dict (``store_rows=False``: without the
+        pose store's per-cell fields, for a checkpoint patch)."""
         return {
             "format": "selfcal-calibrator-state",
             "format_version": STATE_FORMAT_VERSION,
@@ -980,7 +983,7 @@ class OnlineCalibrator:
             "t_ref_s": self.model.t_ref_s,
             "initial_params_u": None if self.initial_params_u is None else self.initial_params_u.tolist(),
             "detector": self.detector.state_dict(),
-            "store": self.store.to_json(),
+            "store": self.store.to_json(rows=store_rows),
             "current": self.current,
             "seeded_prior": self.seeded_prior,
             "last_refit": self.last_refit,
@@ -996,6 +999,25 @@ class OnlineCalibrator:
     def to_json(self) -> str:
         """Serialise the whole state to a JSON string (exact round trip)."""
         return json.dumps(self.state(), allow_nan=True, separators=(",", ":"))
+
+    def checkpoint_base(self, text: str) -> CheckpointBase:
+        """What a checkpoint writer keeps of the full state ``text`` (this calibrator's
+        :meth:`to_json`, just written as a base) to patch it later."""
+        return checkpoint_base_of(text, self.store)
+
+    def checkpoint_patch(self, base: CheckpointBase) -> str:
+        """The state as a patch against ``base`` (text; usually a few % of the full state)."""
+        return make_patch(self.state(store_rows=False), self.store, base)
+
+    @classmethod
+    def from_checkpoint(cls, base_text: str, patch_text: str | None = None) -> tuple["OnlineCalibrator", CheckpointBase]:
+        """A calibrator from a stored base and its latest patch (None: the base alone), and
+        the base's :class:`CheckpointBase` for the next patches."""
+        if patch_text is None:
+            obj = cls.from_json(base_text)
+            return obj, checkpoint_base_of(base_text, obj.store)
+        state, base = apply_patch(base_text, patch_text, encode=False)
+        return cls.from_json(state), base
 
     @classmethod
     def from_json(cls, text: str | dict) -> "OnlineCalibrator":

@@ -116,7 +116,9 @@ def _enc(a: np.ndarray) -> str:
     return base64.b64encode(np.ascontiguousarray(a, dtype="<f8").tobytes()).decode("ascii")
 
 
-def _dec(s: str, shape_tail: tuple[int, ...] = ()) -> np.ndarray:
+def _dec(s: "str | np.ndarray", shape_tail: tuple[int, ...] = ()) -> np.ndarray:
+    if isinstance(s, np.ndarray):  # already decoded (a checkpoint patch applied, selfcal.checkpoint)
+        return np.asarray(s, dtype=float).reshape((-1,) + shape_tail)
     a = np.frombuffer(base64.b64decode(s), dtype="<f8").astype(float)
     return a.reshape((-1,) + shape_tail)
 
@@ -596,14 +598,16 @@ class PoseStore:
         }
 
     # ------------------------------------------------------------------ state
-    def to_json(self) -> dict:
-        """JSON-serialisable state; arrays as base64 little-endian float64 (exact, compact)."""
+    def to_json(self, rows: bool = True) -> dict:
+        """JSON-serialisable state; arrays as base64 little-endian float64 (exact, compact).
+        ``rows=False``: the per-cell fields (``key``, ``stats``, ``t_first``, ``t_last``) are
+        None, in their places (a checkpoint patch fills them, ``selfcal.checkpoint``)."""
         return {
             "config": self.config.model_dump(),
-            "key": self.key.tolist(),
-            "stats": _enc(self.stats),
-            "t_first": _enc(self.t_first),
-            "t_last": _enc(self.t_last),
+            "key": self.key.tolist() if rows else None,
+            "stats": _enc(self.stats) if rows else None,
+            "t_first": _enc(self.t_first) if rows else None,
+            "t_last": _enc(self.t_last) if rows else None,
             "n_seen": self.n_seen,
             "n_gated": self.n_gated,
             "n_merged": self.n_merged,

@@ -66,12 +66,14 @@ def _served_theta(model_cls, served: dict[str, Any] | None, state_model) -> tupl
 
 
 def pose_coverage(state_json: str | None, served: dict[str, Any] | None,
-                  served_version: int | None = None, n_directions: int = SPHERE_GRID_DIRECTIONS) -> dict[str, Any]:
+                  served_version: int | None = None, n_directions: int = SPHERE_GRID_DIRECTIONS,
+                  patch_json: str | None = None) -> dict[str, Any]:
     """The device's stored poses and undetermined directions (see the module docstring).
 
     Parameters
     ----------
     state_json : the device's calibrator state (JSON text), or None before any batch was fed
+    patch_json : the checkpoint's latest patch against ``state_json`` (``selfcal.checkpoint``), if any
     served : the served version's calibration (``params`` in g units, ``model``), or None
     served_version : its number (echoed)
     n_directions : directions spread on the sphere for the undetermined ones
@@ -89,9 +91,14 @@ def pose_coverage(state_json: str | None, served: dict[str, Any] | None,
     if not state_json:
         return _unavailable("no calibrator state yet: no batch has been fed", served_version)
     try:
-        state = json.loads(state_json)
-    except ValueError:
-        return _unavailable("the calibrator state is not JSON", served_version)
+        if patch_json is not None:  # a checkpoint's base and its latest patch
+            from selfcal.checkpoint import apply_patch
+
+            state = apply_patch(state_json, patch_json)[0]
+        else:
+            state = json.loads(state_json)
+    except ValueError:  # (InputError is a ValueError: a patch made against another base)
+        return _unavailable("the calibrator state is not JSON, or its patch does not apply", served_version)
     if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
         return _unavailable("this calibrator keeps no pose store (not selfcal's OnlineCalibrator)", served_version)
 

@@ -356,6 +356,7 @@ def make_worker(store: Storage, factory: CalibratorFactory, metrics: Metrics, se
         reorder_window_s=settings.reorder_window_s,
         min_cycle_interval_s=settings.min_cycle_interval_s,
         checkpoint_samples=settings.checkpoint_samples,
+        checkpoint_patch_fraction=settings.checkpoint_patch_fraction,
         cache_max_devices=settings.cache_max_devices,
         lease=lease,
     )
@@ -806,7 +807,8 @@ def create_app(
         rec = await run_in_threadpool(store.load_device, device_id)
         state = rec.calibrator_state if rec is not None else None
         found = await run_in_threadpool(pose_coverage, state, ver.calibration if ver else None,
-                                        ver.version if ver else None)
+                                        ver.version if ver else None,
+                                        patch_json=rec.calibrator_patch if rec is not None else None)
         return _model(PosesOut(device_id=device_id, **found))
 
     @app.get(

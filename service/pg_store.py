@@ -60,7 +60,7 @@ from selfcal_service.storage import (
 
 log = logging.getLogger("selfcal.service.postgres")
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 # acquire_leases looks at this many more of the longest-waiting devices than it takes, and
 # takes the worker's own (last fed by it) among them first
 AFFINITY_SLACK = 32
@@ -141,7 +141,7 @@ _INGEST_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_ingest(
 _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
         p_device TEXT, p_expected_seq BIGINT, p_expected_rev BIGINT, p_owner TEXT, p_seq BIGINT,
         p_samples BIGINT, p_status TEXT, p_last_refit TEXT, p_feed TEXT, p_at DOUBLE PRECISION,
-        p_state TEXT, p_fed BIGINT[], p_v_status TEXT[], p_v_source TEXT[], p_v_calibration TEXT[],
+        p_state TEXT, p_patch TEXT, p_fed BIGINT[], p_v_status TEXT[], p_v_source TEXT[], p_v_calibration TEXT[],
         p_v_provenance TEXT[], OUT conflict TEXT, OUT numbers INTEGER[], OUT error TEXT)
     LANGUAGE plpgsql AS $fn$
     DECLARE
@@ -188,7 +188,7 @@ _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
             updated_at = extract(epoch from clock_timestamp()),
             state_rev = state_rev + 1
             WHERE device_id = p_device;
-        IF p_state IS NOT NULL THEN
+        IF p_state IS NOT NULL OR p_patch IS NOT NULL THEN
             UPSERT_CHECKPOINT;
         END IF;
         IF COALESCE(cardinality(p_fed), 0) > 0 THEN
@@ -203,7 +203,8 @@ _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
             error := SQLSTATE || ': ' || SQLERRM;
       END;
     END
-    $fn$""".replace("UPSERT_CHECKPOINT", upsert_checkpoint_sql("p_device", "p_seq", "p_state", "p_feed", "p_at"))
+    $fn$""".replace("UPSERT_CHECKPOINT", upsert_checkpoint_sql("p_device", "p_seq", "p_state", "p_patch", "p_feed",
+                                                                    "p_at"))
 
 # the calibrator state in its own table, written every checkpoint_samples rather than every
 # cycle (devices.calibrator_state stays, always NULL since v4)
@@ -214,6 +215,14 @@ _CHECKPOINTS_SCHEMA = """CREATE TABLE IF NOT EXISTS checkpoints (
         feed_state TEXT NOT NULL,
         written_at DOUBLE PRECISION NOT NULL
     )"""
+
+# v6: a checkpoint is a base (``state``) and its latest patch (``selfcal.checkpoint``); a
+# patch write leaves the base's TOAST chunks as they are. The cycle's function takes the
+# patch: its schema-5 signature is dropped, so a schema-5 worker still running fails its
+# commits rather than write a base under another worker's patch
+_CHECKPOINT_PATCH = "ALTER TABLE checkpoints ADD COLUMN IF NOT EXISTS patch TEXT"
+_PROGRESS_FUNCTION_V5 = ("DROP FUNCTION IF EXISTS selfcal_progress(TEXT, BIGINT, BIGINT, TEXT, BIGINT, BIGINT, TEXT, "
+                         "TEXT, TEXT, DOUBLE PRECISION, TEXT, BIGINT[], TEXT[], TEXT[], TEXT[], TEXT[])")
 
 # live refit workers (a heartbeat with the lease renewal): each holds about its share of
 # the fleet's active devices
@@ -288,6 +297,7 @@ _SCHEMA = [
     _CHECKPOINTS_SCHEMA,
     *_WORKERS_SCHEMA,
     _STATE_MOVED,
+    _CHECKPOINT_PATCH,
     _PROGRESS_FUNCTION,
     _WORKER_UNTIL,
     *_LEASE_EXPIRES,
@@ -307,18 +317,19 @@ MIGRATIONS: dict[int, list[str]] = {
         _STATE_MOVED,
     ],
     4: [  # v5: a worker cycle's commit in one round trip; lease affinity
-        _PROGRESS_FUNCTION,
+        # (the function is created by v6, whose signature it has; a body is checked when run)
         "ALTER TABLE devices ADD COLUMN IF NOT EXISTS last_owner TEXT",
         _WORKER_UNTIL,
         *_LEASE_EXPIRES,
     ],
+    5: [_PROGRESS_FUNCTION_V5, _CHECKPOINT_PATCH, _PROGRESS_FUNCTION],  # v6: checkpoint patches
 }
 
 _COLS = [*DEVICE_COLUMNS, "state_rev"]
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in _COLS)  # no state
 # what the worker loads: the state comes from the checkpoint (devices.calibrator_state is unused since v4)
 _LOAD_COLS_STATE = ", ".join("c.state" if c == "calibrator_state" else f"d.{c}" for c in _COLS)
-_CKPT_SQL = ", c.device_id IS NOT NULL, c.seq, c.feed_state FROM devices d LEFT JOIN checkpoints c " \
+_CKPT_SQL = ", c.device_id IS NOT NULL, c.seq, c.feed_state{} FROM devices d LEFT JOIN checkpoints c " \
             "ON c.device_id = d.device_id WHERE d.device_id = %s"
 _N = len(_COLS)
 # a worker cycle's read: the device row (no state) and its first pending batches, one row
@@ -529,7 +540,7 @@ class PostgresStore(GroupCommitStore):
 
     def load_device(self, device_id: str, with_state: bool = True) -> DeviceRecord | None:
         cols = _LOAD_COLS_STATE if with_state else _DEVICE_READ_COLS
-        rows = self._read(f"SELECT {cols}{_CKPT_SQL}", (device_id,))
+        rows = self._read(f"SELECT {cols}{_CKPT_SQL.format(', c.patch' if with_state else '')}", (device_id,))
         return with_checkpoint(device_from_row(rows[0][:_N]), rows[0][_N:]) if rows else None
 
     def fed_batches(self, device_id: str, after_seq: int | None, upto_seq: int | None,
@@ -540,14 +551,14 @@ class PostgresStore(GroupCommitStore):
             (device_id, -1 if after_seq is None else after_seq, -1 if upto_seq is None else upto_seq, limit))
         return [PendingBatch(r[0], r[1], r[2], bytes(r[3])) for r in rows]
 
-    def write_checkpoint(self, device_id: str, seq: int | None, state: str, feed_state: dict[str, Any],
-                         state_rev: int | None = None) -> bool:
+    def write_checkpoint(self, device_id: str, seq: int | None, state: str | None, feed_state: dict[str, Any],
+                         state_rev: int | None = None, patch: str | None = None) -> bool:
         def op(conn: Any) -> bool:
             row = conn.execute("SELECT processed_seq, state_rev FROM devices WHERE device_id = %s FOR UPDATE",
                                (device_id,)).fetchone()
             if row is None or row[0] != seq or (state_rev is not None and row[1] != state_rev):
                 return False
-            upsert_checkpoint(conn, "%s", device_id, seq, state, feed_state, time.time())
+            upsert_checkpoint(conn, "%s", device_id, seq, state, feed_state, time.time(), patch)
             return True
 
         op.device_id = device_id  # type: ignore[attr-defined]
@@ -608,8 +619,9 @@ class PostgresStore(GroupCommitStore):
                 (p.processed_seq, p.samples_added, p.calibrator_status,
                  None if p.last_refit is None else dumps_json(p.last_refit), dumps_json(p.feed_state),
                  numbers[-1] if numbers else None, p.device_id))
-            if p.calibrator_state is not None:
-                upsert_checkpoint(conn, "%s", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now)
+            if p.calibrator_state is not None or p.calibrator_patch is not None:
+                upsert_checkpoint(conn, "%s", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now,
+                                  p.calibrator_patch)
             if p.fed_seqs:
                 conn.execute("UPDATE batches SET state = 1 WHERE device_id = %s AND seq = ANY(%s) AND state = 0",
                              (p.device_id, list(p.fed_seqs)))
@@ -647,10 +659,11 @@ class PostgresStore(GroupCommitStore):
             now = time.time()
             conflict, numbers, error = conn.execute(
                 "SELECT conflict, numbers, error FROM selfcal_progress(%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, "
-                "%s, %s::bigint[], %s::text[], %s::text[], %s::text[], %s::text[])",
+                "%s, %s, %s::bigint[], %s::text[], %s::text[], %s::text[], %s::text[])",
                 (p.device_id, p.expected_processed_seq, p.expected_state_rev, p.lease_owner, p.processed_seq,
                  p.samples_added, p.calibrator_status, None if p.last_refit is None else dumps_json(p.last_refit),
-                 dumps_json(p.feed_state), now, p.calibrator_state, list(p.fed_seqs), [v.status for v in vs],
+                 dumps_json(p.feed_state), now, p.calibrator_state, p.calibrator_patch, list(p.fed_seqs),
+                 [v.status for v in vs],
                  [v.source for v in vs], [dumps_json(v.calibration) for v in vs],
                  [dumps_json(v.provenance) for v in vs])).fetchone()
             if error is not None:  # undone on the server; its neighbours in the group stand

@@ -59,6 +59,12 @@ class Settings(BaseModel):
                     "were fed since it was last written (0: every cycle); a restore (restart, lease takeover) feeds "
                     "the stored batches since then again. 12 000 = 10 min of a 20-Hz insole",
     )
+    checkpoint_patch_fraction: float = Field(
+        0.25, ge=0, le=1,
+        description="a checkpoint is written as a patch against the last full state written (its base: the changed "
+                    "pose cells and the rest of the state, ~10 % of it for a worn insole) while the patch is at most "
+                    "this fraction of the base's size; past it, a new full base. 0: every checkpoint in full",
+    )
     cache_max_devices: int = Field(
         0, ge=0, le=10_000_000,
         description="calibrators a refit process keeps in memory (~1.5 MB each after a week of wear); beyond it the "

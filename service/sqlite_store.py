@@ -53,7 +53,7 @@ from selfcal_service.storage import (
 
 log = logging.getLogger("selfcal.service.sqlite")
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 
 # the calibrator state, written every checkpoint_samples rather than every cycle (v4)
 _CHECKPOINTS_DDL = """CREATE TABLE IF NOT EXISTS checkpoints (
@@ -63,6 +63,9 @@ _CHECKPOINTS_DDL = """CREATE TABLE IF NOT EXISTS checkpoints (
     feed_state TEXT NOT NULL,
     written_at REAL NOT NULL
 )"""
+
+# v5: a checkpoint is a base (``state``) and its latest patch (``selfcal.checkpoint``)
+_CHECKPOINT_PATCH_DDL = "ALTER TABLE checkpoints ADD COLUMN patch TEXT"
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
@@ -118,7 +121,7 @@ CREATE TABLE IF NOT EXISTS refusals (
     seq       INTEGER
 );
 CREATE INDEX IF NOT EXISTS refusals_device ON refusals (device_id, id);
-""" + _CHECKPOINTS_DDL + ";\n"
+""" + _CHECKPOINTS_DDL + ";\n" + _CHECKPOINT_PATCH_DDL + ";\n"
 
 #: Batch states: pending, fed to the calibrator once, rejected with a reason.
 PENDING, FED, REJECTED = 0, 1, 2
@@ -158,6 +161,7 @@ MIGRATIONS = {
         "WHERE calibrator_state IS NOT NULL",
         "UPDATE devices SET calibrator_state = NULL",
     ],
+    4: [_CHECKPOINT_PATCH_DDL],  # v5: checkpoint patches (every checkpoint so far is a base)
 }
 
 _N_DEVICE_COLS = len(DEVICE_COLUMNS)
@@ -315,8 +319,8 @@ class SQLiteStore(GroupCommitStore):
 
     def load_device(self, device_id: str, with_state: bool = True) -> DeviceRecord | None:
         row = self._reader().execute(
-            f"SELECT {_LOAD_COLS_STATE if with_state else _DEVICE_READ_COLS}, c.device_id IS NOT NULL, c.seq, c.feed_state "
-            "FROM devices d LEFT JOIN checkpoints c ON c.device_id = d.device_id WHERE d.device_id = ?",
+            f"SELECT {_LOAD_COLS_STATE if with_state else _DEVICE_READ_COLS}, c.device_id IS NOT NULL, c.seq, c.feed_state"
+            f"{', c.patch' if with_state else ''} FROM devices d LEFT JOIN checkpoints c ON c.device_id = d.device_id WHERE d.device_id = ?",
             (device_id,),
         ).fetchone()
         return with_checkpoint(device_from_row(row[:_N_DEVICE_COLS]), row[_N_DEVICE_COLS:]) if row else None
@@ -330,13 +334,14 @@ class SQLiteStore(GroupCommitStore):
         ).fetchall()
         return [PendingBatch(*r) for r in rows]
 
-    def write_checkpoint(self, device_id: str, seq: int | None, state: str, feed_state: dict[str, Any],
-                         state_rev: int | None = None) -> bool:  # (one process: no revision to check)
+    def write_checkpoint(self, device_id: str, seq: int | None, state: str | None, feed_state: dict[str, Any],
+                         state_rev: int | None = None, patch: str | None = None) -> bool:
+        # (one process: no revision to check)
         def op(conn: sqlite3.Connection) -> bool:
             row = conn.execute("SELECT processed_seq FROM devices WHERE device_id = ?", (device_id,)).fetchone()
             if row is None or row[0] != seq:
                 return False
-            upsert_checkpoint(conn, "?", device_id, seq, state, feed_state, time.time())
+            upsert_checkpoint(conn, "?", device_id, seq, state, feed_state, time.time(), patch)
             return True
 
         return self._submit(op).result()
@@ -385,8 +390,9 @@ class SQLiteStore(GroupCommitStore):
             )
             if cur.rowcount != 1:
                 raise ConflictError(f"device {p.device_id}: processed_seq changed under the worker")
-            if p.calibrator_state is not None:
-                upsert_checkpoint(conn, "?", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now)
+            if p.calibrator_state is not None or p.calibrator_patch is not None:
+                upsert_checkpoint(conn, "?", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now,
+                                  p.calibrator_patch)
             if p.fed_seqs:
                 conn.executemany(
                     "UPDATE batches SET state = 1 WHERE device_id = ? AND seq = ? AND state = 0",

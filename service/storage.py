@@ -98,6 +98,9 @@ class DeviceRecord:
     # where ``calibrator_state`` stands (None: no checkpoint, a fresh calibrator). The state
     # text itself is read only by ``load_device(..., with_state=True)``.
     checkpoint: Checkpoint | None = None
+    # the checkpoint's latest patch against ``calibrator_state`` (its base), or None: the
+    # base alone is the checkpoint (``selfcal.checkpoint``; read with the state only)
+    calibrator_patch: str | None = None
 
 
 @dataclass
@@ -155,6 +158,10 @@ class Progress:
     # from, and the lease the writing worker must still hold (None: not checked)
     expected_state_rev: int | None = None
     lease_owner: str | None = None
+    # the calibrator state after this cycle as a patch against the stored base (with
+    # ``calibrator_state`` None): the checkpoint's patch is replaced and its base kept. A
+    # full ``calibrator_state`` replaces the base and clears the patch.
+    calibrator_patch: str | None = None
 
 
 @dataclass
@@ -274,28 +281,40 @@ def device_from_row(row: tuple) -> DeviceRecord:
     )
 
 
-def upsert_checkpoint_sql(device_id: str, seq: str, state: str, feed_state: str, written_at: str) -> str:
-    """SQL that writes a device's checkpoint from five value expressions (placeholders, or
-    a PL/pgSQL function's parameters), never an older state over a newer one."""
-    return (f"INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) "
-            f"VALUES ({device_id}, {seq}, {state}, {feed_state}, {written_at}) "
-            "ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, state = excluded.state, "
-            "feed_state = excluded.feed_state, written_at = excluded.written_at "
+def upsert_checkpoint_sql(device_id: str, seq: str, state: str, patch: str, feed_state: str,
+                          written_at: str) -> str:
+    """SQL that writes a device's checkpoint from six value expressions (placeholders, or
+    a PL/pgSQL function's parameters), never an older state over a newer one.
+
+    A full ``state`` (``patch`` NULL) replaces the base and clears the patch; a ``patch``
+    (``state`` NULL) replaces the patch and keeps the base, whose text is not written
+    again (PostgreSQL keeps its TOAST chunks). A patch with no checkpoint row to patch
+    stores an empty base, which no patch applies to: its restore fails, loudly."""
+    return (f"INSERT INTO checkpoints(device_id, seq, state, patch, feed_state, written_at) "
+            f"VALUES ({device_id}, {seq}, COALESCE({state}, ''), {patch}, {feed_state}, {written_at}) "
+            "ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, "
+            "state = CASE WHEN excluded.patch IS NULL THEN excluded.state ELSE checkpoints.state END, "
+            "patch = excluded.patch, feed_state = excluded.feed_state, written_at = excluded.written_at "
             "WHERE checkpoints.seq IS NULL OR excluded.seq >= checkpoints.seq")
 
 
-def upsert_checkpoint(conn: Any, placeholder: str, device_id: str, seq: int | None, state: str,
-                      feed_state: dict[str, Any], now: float) -> None:
-    """Write a device's checkpoint on a connection (``placeholder``: ``?`` for sqlite3,
-    ``%s`` for psycopg), in the caller's transaction."""
-    conn.execute(upsert_checkpoint_sql(*[placeholder] * 5), (device_id, seq, state, dumps_json(feed_state), now))
+def upsert_checkpoint(conn: Any, placeholder: str, device_id: str, seq: int | None, state: str | None,
+                      feed_state: dict[str, Any], now: float, patch: str | None = None) -> None:
+    """Write a device's checkpoint (a full ``state``, or a ``patch`` against the stored
+    base) on a connection (``placeholder``: ``?`` for sqlite3, ``%s`` for psycopg), in
+    the caller's transaction."""
+    if (state is None) == (patch is None):
+        raise ValueError("a checkpoint is a full state or a patch, exactly one of them")
+    conn.execute(upsert_checkpoint_sql(*[placeholder] * 6),
+                 (device_id, seq, state, patch, dumps_json(feed_state), now))
 
 
 def with_checkpoint(rec: DeviceRecord, cols: tuple) -> DeviceRecord:
-    """``rec`` with its checkpoint from the columns (exists, seq, feed_state JSON)."""
-    exists, seq, feed = cols
+    """``rec`` with its checkpoint from the columns (exists, seq, feed_state JSON[, patch])."""
+    exists, seq, feed = cols[:3]
     if exists:
         rec.checkpoint = Checkpoint(seq=seq, feed_state=json.loads(feed) if feed else {})
+        rec.calibrator_patch = cols[3] if len(cols) > 3 else None
     return rec
 
 
@@ -342,7 +361,7 @@ class Storage(abc.ABC):
     @abc.abstractmethod
     def load_device(self, device_id: str, with_state: bool = True) -> DeviceRecord | None:
         """The device row with its checkpoint's position; the checkpoint's state text
-        (``calibrator_state``, up to megabytes) only ``with_state``."""
+        (``calibrator_state``, up to megabytes, and ``calibrator_patch``) only ``with_state``."""
 
     @abc.abstractmethod
     def fed_batches(self, device_id: str, after_seq: int | None, upto_seq: int | None,
@@ -351,9 +370,11 @@ class Storage(abc.ABC):
         bound below) in seq order, at most ``limit``: the replay after a checkpoint."""
 
     @abc.abstractmethod
-    def write_checkpoint(self, device_id: str, seq: int | None, state: str,
-                         feed_state: dict[str, Any], state_rev: int | None = None) -> bool:
-        """Write a calibrator state as the device's checkpoint at ``seq`` if the device's
+    def write_checkpoint(self, device_id: str, seq: int | None, state: str | None,
+                         feed_state: dict[str, Any], state_rev: int | None = None,
+                         patch: str | None = None) -> bool:
+        """Write a calibrator state (full ``state``, or a ``patch`` against the stored base
+        with ``state`` None) as the device's checkpoint at ``seq`` if the device's
         ``processed_seq`` is still ``seq`` and (when given; PostgreSQL) its ``state_rev``
         is still ``state_rev`` (else nothing: a newer cycle or an admin seed was
         committed); True if written. Durable on return."""

@@ -83,7 +83,20 @@ class CalibratorFactory:
     def restore(self, state_json: str) -> Calibrator:
         """A calibrator from its saved state. The service's current ``[selection]`` settings
         replace the saved ones (an operator who turns model selection off means every device)."""
-        cal = self.cls.from_json(state_json)
+        return self._configured(self.cls.from_json(state_json))
+
+    def restore_checkpoint(self, base_json: str, patch_json: str | None) -> tuple[Calibrator, Any]:
+        """A calibrator from a checkpoint: its base state and its latest patch (None: the
+        base alone), and what a later patch is made against (None: the class writes no
+        patches, ``from_checkpoint`` missing). As :meth:`restore` for the settings."""
+        if hasattr(self.cls, "from_checkpoint"):
+            cal, base = self.cls.from_checkpoint(base_json, patch_json)
+            return self._configured(cal), base
+        if patch_json is not None:
+            raise ValueError(f"{self.cls.__name__} cannot apply a checkpoint patch (no from_checkpoint)")
+        return self.restore(base_json), None
+
+    def _configured(self, cal: Calibrator) -> Calibrator:
         if self.config is not None and hasattr(cal, "set_selection"):
             cal.set_selection((self.config or {}).get("selection"))
         return cal
@@ -174,6 +187,7 @@ class RefitWorker:
         reorder_window_s: float = 10.0,
         min_cycle_interval_s: float = 0.0,
         checkpoint_samples: int = 0,
+        checkpoint_patch_fraction: float = 0.25,
         cache_max_devices: int = 0,
         lease: "LeaseConfig | None" = None,
     ):
@@ -198,6 +212,11 @@ class RefitWorker:
         # the calibrator state is written (a checkpoint) once this many samples were fed
         # since the last one (0: every cycle); a restore replays the batches fed since
         self.checkpoint_samples = checkpoint_samples
+        # a checkpoint is a patch against the base stored last while it is at most this
+        # fraction of the base (0: always in full); the base of each cached device (what
+        # the calibrator's ``checkpoint_patch`` needs) as this worker wrote or read it
+        self.checkpoint_patch_fraction = checkpoint_patch_fraction
+        self._bases: dict[str, Any] = {}
         # calibrators kept in memory (0: every device fed); the least recently used beyond
         # it is written as a checkpoint if it is ahead of one, then dropped
         self.cache_max_devices = cache_max_devices
@@ -371,6 +390,7 @@ class RefitWorker:
         """Drop the cached calibrator: the next cycle restores it from the store."""
         self._cache.pop(device_id, None)
         self._dirty.pop(device_id, None)
+        self._bases.pop(device_id, None)
 
     def _calibrator(self, rec: DeviceRecord) -> Calibrator:
         cached = self._cache.get(rec.device_id)
@@ -393,8 +413,14 @@ class RefitWorker:
         if full is None or full.processed_seq != rec.processed_seq or full.state_rev != rec.state_rev:
             raise ConflictError(f"device {rec.device_id}: changed while its calibrator was restored")
         ckpt = full.checkpoint
-        cal = self.factory.restore(full.calibrator_state) if ckpt is not None and full.calibrator_state \
-            else self.factory.create()
+        if ckpt is not None and full.calibrator_state:
+            cal, base = self.factory.restore_checkpoint(full.calibrator_state, full.calibrator_patch)
+            if base is not None:
+                self._bases[rec.device_id] = base
+        elif ckpt is not None and full.calibrator_patch is not None:
+            raise ValueError(f"device {rec.device_id}: its checkpoint is a patch with no base")
+        else:
+            cal = self.factory.create()
         if rec.processed_seq is None or (ckpt is not None and ckpt.seq == rec.processed_seq):
             return cal  # nothing fed since the checkpoint
         feed = dict(ckpt.feed_state) if ckpt is not None else {}
@@ -435,6 +461,28 @@ class RefitWorker:
                     lock.release()
         return written
 
+    def _checkpoint_texts(self, device_id: str, cal: Calibrator) -> tuple[str | None, str | None, Any]:
+        """A checkpoint of ``cal``: (full state or None, patch or None, the base once it is
+        written). A patch against this worker's base of the device while it is at most
+        ``checkpoint_patch_fraction`` of it; else the full state, the next base."""
+        base = self._bases.get(device_id)
+        if base is not None and self.checkpoint_patch_fraction > 0 and hasattr(cal, "checkpoint_patch"):
+            patch = cal.checkpoint_patch(base)
+            if len(patch) <= self.checkpoint_patch_fraction * base.n_bytes:
+                self.metrics.inc("selfcal_worker_checkpoint_patches_total")
+                self.metrics.inc("selfcal_worker_checkpoint_bytes_total", len(patch))
+                return None, patch, base
+        full = cal.to_json()
+        self.metrics.inc("selfcal_worker_checkpoint_bytes_total", len(full))
+        return full, None, (cal.checkpoint_base(full) if hasattr(cal, "checkpoint_base") else None)
+
+    def _based(self, device_id: str, base: Any) -> None:
+        """The checkpoint just committed for a device stands on ``base`` (None: unknown)."""
+        if base is None:
+            self._bases.pop(device_id, None)
+        else:
+            self._bases[device_id] = base
+
     def _checkpoint_now(self, device_id: str) -> bool:
         """Write the cached calibrator of a device (the caller holds its lock) if it is
         ahead of the checkpoint, and nothing was committed for the device since it was
@@ -444,11 +492,15 @@ class RefitWorker:
         if dirty is None or cached is None or cached[0] != (dirty[0], dirty[1]):
             return False
         try:
-            return self.store.write_checkpoint(device_id, dirty[0], cached[1].to_json(), dirty[2],
-                                               state_rev=dirty[1])
+            state, patch, base = self._checkpoint_texts(device_id, cached[1])
+            written = self.store.write_checkpoint(device_id, dirty[0], state, dirty[2], state_rev=dirty[1],
+                                                  patch=patch)
         except Exception as exc:  # noqa: BLE001 - the next restore replays instead
             log.warning("device %s: checkpoint not written (%s); a restore replays", device_id, exc)
             return False
+        if written:
+            self._based(device_id, base)
+        return written
 
     def _plan(self, rec: DeviceRecord, rows: list[PendingBatch], now: float):
         """Split pending batches into (to feed now in seq order, rejected late, held).
@@ -539,12 +591,14 @@ class RefitWorker:
         more = len(rows) >= self.max_batches
         checkpoint = self.checkpoint_samples <= 0 or \
             self._samples_since_checkpoint(rec, feed) >= self.checkpoint_samples
+        state, patch, base = self._checkpoint_texts(device_id, cal) if checkpoint else (None, None, None)
         progress = Progress(
             device_id=device_id,
             expected_processed_seq=rec.processed_seq,
             processed_seq=max(fed, default=rec.processed_seq),  # fed seqs are all above it
             samples_added=samples,
-            calibrator_state=cal.to_json() if checkpoint else None,
+            calibrator_state=state,
+            calibrator_patch=patch,
             calibrator_status=str(cal.status),
             last_refit=last_refit,
             feed_state=feed,
@@ -560,6 +614,7 @@ class RefitWorker:
         self._keep(device_id, (progress.processed_seq, rev), cal)
         if checkpoint:
             self._dirty.pop(device_id, None)
+            self._based(device_id, base)
             self.metrics.inc("selfcal_worker_checkpoints_total")
         else:
             self._dirty[device_id] = (progress.processed_seq, rev, feed)
@@ -880,12 +935,14 @@ class RefitWorker:
                 calib["source"] = "factory"
                 status = str(cal.status) if cal.status != "uncalibrated" else "provisional"
                 version = NewVersion(status, version.source, calib, version.provenance)
+        # an admin write is rare: always a full state (a new base)
+        state = cal.to_json() if cal is not None else None
         progress = Progress(
             device_id=device_id,
             expected_processed_seq=expected,
             processed_seq=expected,
             samples_added=0,
-            calibrator_state=cal.to_json() if cal is not None else None,  # None: the checkpoint stays
+            calibrator_state=state,  # None: the checkpoint stays
             calibrator_status=str(cal.status) if cal is not None else (rec.calibrator_status if rec else None),
             last_refit=rec.last_refit if rec else None,
             feed_state=rec.feed_state if rec else {},
@@ -897,6 +954,7 @@ class RefitWorker:
         if cal is not None:
             self._keep(device_id, (expected, rev), cal)
             self._dirty.pop(device_id, None)
+            self._based(device_id, cal.checkpoint_base(state) if hasattr(cal, "checkpoint_base") else None)
         else:  # the calibrator did not change: what is cached stays valid
             cached = self._cache.get(device_id)
             if cached is not None and rec is not None and cached[0] == (expected, rec.state_rev):

@@ -115,7 +115,9 @@ def run(args: argparse.Namespace) -> int:
                 print(f"selfcal worker: {time.monotonic() - t0:7.0f} s, {worker.cycles} cycles, "
                       f"{metrics.get('selfcal_worker_samples_total'):.0f} samples fed, "
                       f"{len(worker._leased)} devices leased, backlog {backlog}, "
-                      f"{metrics.get('selfcal_worker_checkpoints_total'):.0f} checkpoints written, "
+                      f"{metrics.get('selfcal_worker_checkpoints_total'):.0f} checkpoints written "
+                      f"({metrics.get('selfcal_worker_checkpoint_patches_total'):.0f} as patches, "
+                      f"{metrics.get('selfcal_worker_checkpoint_bytes_total') / 1e6:.1f} MB), "
                       f"{worker.replays} restores replayed "
                       f"({metrics.get('selfcal_worker_replayed_samples_total'):.0f} samples), "
                       f"{worker.conflicts} conflicts", file=sys.stderr, flush=True)

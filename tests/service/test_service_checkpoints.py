@@ -6,6 +6,7 @@ that never stopped publishes (runs on SQLite and on PostgreSQL)."""
 from __future__ import annotations
 
 import hashlib
+import json
 import time
 
 import numpy as np
@@ -299,5 +300,53 @@ def test_a_rollback_by_the_worker_leaves_its_calibrator_due_for_its_checkpoint(t
         assert worker.flush_checkpoints() == 1
         rec = store.load_device("ins")
         assert rec.checkpoint.seq == 1 and rec.calibrator_state and rec.checkpoint.feed_state["samples"] == 2 * N
+    finally:
+        store.close()
+
+
+def test_a_checkpoint_written_as_a_patch_restores_the_calibrator_exactly(tmp_path, stream):
+    """Every checkpoint after the first written as a patch against the first (the base): a
+    worker that restores the device from base + patch has the calibrator of the one that
+    wrote it, byte for byte, and the pose coverage read from them is the full state's. A
+    checkpoint in full (``checkpoint_patch_fraction`` 0) replaces the base and clears the
+    patch."""
+    from selfcal_service.coverage import pose_coverage
+
+    cfg, batches = stream
+    store = _open(backend_db(tmp_path / "patch.db"))
+    try:
+        _ingest(store, batches[:20])
+        first = _worker(store, cfg, checkpoint_samples=CKPT)
+        first.checkpoint_patch_fraction = 1e9  # never a new base
+        _drain(first)
+        assert first.metrics.get("selfcal_worker_checkpoints_total") == 4  # at seqs 4, 9, 14, 19
+        assert first.metrics.get("selfcal_worker_checkpoint_patches_total") == 3
+        rec = store.load_device("ins")
+        assert rec.checkpoint.seq == 19 and rec.calibrator_patch is not None
+        base_at = json.loads(rec.calibrator_state)["n_samples"]
+        assert base_at == 5 * N  # the base is still the first checkpoint
+
+        second = _worker(store, cfg, checkpoint_samples=CKPT)
+        cal = second._calibrator(store.load_device("ins", with_state=False))
+        assert second.replays == 0
+        want = first._cache["ins"][1].to_json()
+        assert cal.to_json() == want
+        assert pose_coverage(rec.calibrator_state, None, patch_json=rec.calibrator_patch) == \
+            pose_coverage(want, None)
+
+        # the restoring worker patches the same base further, then writes in full
+        _ingest(store, batches[20:30])
+        second.checkpoint_patch_fraction = 1e9
+        assert second.process("ins")  # 1 batch a cycle
+        for _ in range(4):
+            second.process("ins")
+        assert second.metrics.get("selfcal_worker_checkpoint_patches_total") == 1
+        rec = store.load_device("ins")
+        assert rec.checkpoint.seq == 24 and json.loads(rec.calibrator_state)["n_samples"] == base_at
+        second.checkpoint_patch_fraction = 0.0
+        _drain(second)
+        rec = store.load_device("ins")
+        assert rec.checkpoint.seq == 29 and rec.calibrator_patch is None
+        assert rec.calibrator_state == second._cache["ins"][1].to_json()
     finally:
         store.close()

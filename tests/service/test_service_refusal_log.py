@@ -130,7 +130,53 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
             conn.execute("UPDATE devices SET calibrator_state = '{}' WHERE device_id = 'dev-s'")
         with pytest.raises(psycopg.errors.CheckViolation):  # nor a schema-4 worker take or renew a lease
             conn.execute("UPDATE devices SET lease_owner = 'old', lease_until = 1e12 WHERE device_id = 'dev-s'")
-    assert SCHEMA_VERSION == 5
+        # v6: one cycle function, the one that takes a checkpoint patch
+        assert conn.execute("SELECT array_agg(pronargs) FROM pg_proc WHERE proname = 'selfcal_progress'"
+                            ).fetchone()[0] == [17]
+    assert SCHEMA_VERSION == 6
+
+
+@only_postgres
+def test_a_schema_5_postgres_database_gets_checkpoint_patches(tmp_path):
+    """v5 -> v6: the checkpoints get a patch column (the stored states are bases) and the
+    cycle function of schema 5 is dropped, so a schema-5 worker left running cannot commit
+    a full state under another worker's patch; a cycle then commits a patch."""
+    import psycopg
+
+    from selfcal_service.pg_store import PostgresStore
+
+    url = backend_db(tmp_path / "pg-v5.db")
+    store = PostgresStore(url)
+    store.open()
+    store.close()
+    args = "TEXT, BIGINT, BIGINT, TEXT, BIGINT, BIGINT, TEXT, TEXT, TEXT, DOUBLE PRECISION, TEXT, BIGINT[], " \
+           "TEXT[], TEXT[], TEXT[], TEXT[]"
+    with psycopg.connect(url, autocommit=True) as conn:  # back to schema 5
+        conn.execute("DROP FUNCTION selfcal_progress")
+        conn.execute(f"CREATE FUNCTION selfcal_progress({args}, OUT conflict TEXT, OUT numbers INTEGER[], "
+                     "OUT error TEXT) LANGUAGE sql AS $$ SELECT 'schema 5'::text, NULL::integer[], NULL::text $$")
+        conn.execute("ALTER TABLE checkpoints DROP COLUMN patch")
+        conn.execute("INSERT INTO devices(device_id, created_at, processed_seq, feed_state) "
+                     "VALUES ('dev-5', 0, 4, '{\"samples\": 100}')")
+        conn.execute("INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) "
+                     "VALUES ('dev-5', 4, '{\"s\": 1}', '{\"samples\": 100}', 0)")
+        conn.execute("UPDATE meta SET value = '5' WHERE key = 'schema_version'")
+    store = PostgresStore(url)
+    store.open()
+    try:
+        rec = store.load_device("dev-5")
+        assert (rec.calibrator_state, rec.calibrator_patch, rec.checkpoint.seq) == ('{"s": 1}', None, 4)
+        cycle = _cycle("dev-5", [])
+        cycle.expected_processed_seq, cycle.processed_seq, cycle.fed_seqs = 4, 5, [5]
+        cycle.calibrator_patch = '{"p": 5}'
+        assert store.commit_progress(cycle).result(timeout=30) == []
+        rec = store.load_device("dev-5")
+        assert (rec.calibrator_state, rec.calibrator_patch, rec.checkpoint.seq) == ('{"s": 1}', '{"p": 5}', 5)
+    finally:
+        store.close()
+    with psycopg.connect(url, autocommit=True) as conn:
+        assert conn.execute("SELECT array_agg(pronargs) FROM pg_proc WHERE proname = 'selfcal_progress'"
+                            ).fetchone()[0] == [17]
 
 
 def test_the_refit_worker_logs_refits_without_a_model_and_rejected_batches():

@@ -1,0 +1,143 @@
+"""Delta checkpoints of a calibrator's state: a full *base*, then small *patches* against it.
+
+A worn calibrator's state is ~97 % pose store (one row of sums per pose cell), and between
+two checkpoints only the cells that got windows change. A patch holds every field of the
+state but the store's rows, the row order (the base row each row is, or -1) and the rows
+that are not in the base. Applied to its base, it gives the full state, byte for byte
+(``tests/test_checkpoint.py``).
+
+* A row is recognised by a 64-bit digest of its bytes (key, statistics, first and last
+  time): the writer keeps only the base's digests (8 bytes a cell), not its rows. Equal
+  rows have equal digests; a changed row keeps its old digest with probability ~2^-64.
+* A patch names its base by the CRC-32 and length of the base's text, and applying it to
+  any other base raises :class:`~selfcal.errors.InputError`.
+* Nothing here knows the storage: the refit worker decides when a patch is small enough
+  (``patch_fraction`` of the base) and the stores keep the base and the latest patch.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import zlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from selfcal.errors import InputError
+from selfcal.poses import N_STATS, _dec, _enc
+
+PATCH_FORMAT = "selfcal-calibrator-patch"
+PATCH_FORMAT_VERSION = 1
+_ROWS = ("key", "stats", "t_first", "t_last")  # the store's per-cell fields, in its JSON order
+
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+
+
+@dataclass(frozen=True)
+class CheckpointBase:
+    """What a writer keeps of a stored base: ``crc32`` and ``n_bytes`` of its text (UTF-8),
+    and ``digests (m,) uint64``, one per pose-store row in the base's order."""
+
+    crc32: int
+    n_bytes: int
+    digests: np.ndarray
+
+
+def _mix(z: np.ndarray) -> np.ndarray:
+    """splitmix64's finaliser, elementwise on uint64 (wrapping arithmetic)."""
+    z = (z ^ (z >> np.uint64(30))) * _M1
+    z = (z ^ (z >> np.uint64(27))) * _M2
+    return z ^ (z >> np.uint64(31))
+
+
+def row_digests(key: np.ndarray, stats: np.ndarray, t_first: np.ndarray, t_last: np.ndarray) -> np.ndarray:
+    """A 64-bit digest of each pose-store row: ``key (m,) int64``, ``stats (m, 20)``,
+    ``t_first``/``t_last (m,)`` in s, as float64 bits (-0.0 and 0.0 differ). Returns (m,) uint64."""
+    m = int(np.shape(key)[0])
+    words = np.empty((m, N_STATS + 3), dtype=np.uint64)
+    words[:, 0] = np.asarray(key, dtype="<i8").view(np.uint64)
+    words[:, 1:N_STATS + 1] = np.ascontiguousarray(stats, dtype="<f8").reshape(m, N_STATS).view(np.uint64)
+    words[:, N_STATS + 1] = np.ascontiguousarray(t_first, dtype="<f8").view(np.uint64)
+    words[:, N_STATS + 2] = np.ascontiguousarray(t_last, dtype="<f8").view(np.uint64)
+    column = np.arange(1, N_STATS + 4, dtype=np.uint64) * _GOLDEN  # each column its own offset
+    return _mix(_mix(words + column).sum(axis=1, dtype=np.uint64))
+
+
+def _store_rows(store_json: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    return (np.asarray(store_json["key"], dtype=np.int64).reshape(-1), _dec(store_json["stats"], (N_STATS,)),
+            _dec(store_json["t_first"]), _dec(store_json["t_last"]))
+
+
+def base_of(text: str, store) -> CheckpointBase:
+    """The :class:`CheckpointBase` of a full state ``text`` whose pose store is ``store``
+    (a :class:`~selfcal.poses.PoseStore`, as serialised in ``text``)."""
+    raw = text.encode()
+    return CheckpointBase(zlib.crc32(raw), len(raw), row_digests(store.key, store.stats, store.t_first, store.t_last))
+
+
+def make_patch(state: dict[str, Any], store, base: CheckpointBase) -> str:
+    """The patch text that turns ``base`` into ``state`` (a calibrator's ``state()`` dict
+    whose ``"store"`` entry serialises ``store``)."""
+    digests = row_digests(store.key, store.stats, store.t_first, store.t_last)
+    order = np.argsort(base.digests, kind="stable")
+    ranked = base.digests[order]
+    pos = np.minimum(np.searchsorted(ranked, digests), max(len(ranked) - 1, 0))
+    hit = ranked[pos] == digests if len(ranked) else np.zeros(len(digests), bool)
+    from_base = np.where(hit, order[pos] if len(ranked) else 0, -1).astype("<i4")
+    new = ~hit
+    store_patch = dict(state["store"])
+    store_patch.update(key=store.key[new].tolist(), stats=_enc(store.stats[new]), t_first=_enc(store.t_first[new]),
+                       t_last=_enc(store.t_last[new]),
+                       from_base=base64.b64encode(from_base.tobytes()).decode("ascii"))
+    out = {"format": PATCH_FORMAT, "format_version": PATCH_FORMAT_VERSION, "base_crc32": base.crc32,
+           "base_bytes": base.n_bytes, "state": dict(state, store=store_patch)}
+    return json.dumps(out, allow_nan=True, separators=(",", ":"))
+
+
+def apply_patch(base_text: str, patch_text: str, encode: bool = True) -> tuple[dict[str, Any], CheckpointBase]:
+    """The full state dict that ``patch_text`` makes of ``base_text``, and the base's
+    :class:`CheckpointBase` (for the next patch against the same base). ``encode=False``:
+    the pose store's per-cell fields are left as arrays (``PoseStore.from_json`` takes
+    them; the dict is then not JSON), which saves encoding them to decode them again.
+
+    Raises :class:`InputError` if the patch is not a patch or was made against another base."""
+    raw = base_text.encode()
+    try:
+        patch = json.loads(patch_text)
+    except ValueError as exc:
+        raise InputError(f"checkpoint patch: not JSON ({exc})") from None
+    if not isinstance(patch, dict) or patch.get("format") != PATCH_FORMAT \
+            or patch.get("format_version") != PATCH_FORMAT_VERSION:
+        raise InputError("checkpoint patch: unknown format or version")
+    if patch.get("base_crc32") != zlib.crc32(raw) or patch.get("base_bytes") != len(raw):
+        raise InputError(f"checkpoint patch: made against another base (CRC-32 {patch.get('base_crc32')}, "
+                         f"{patch.get('base_bytes')} bytes; the stored base has {zlib.crc32(raw)}, {len(raw)} bytes)")
+    base_state = json.loads(base_text)
+    rows = _store_rows(base_state["store"])
+    base = CheckpointBase(zlib.crc32(raw), len(raw), row_digests(*rows))
+    state = patch["state"]
+    store_patch = dict(state["store"])
+    from_base = np.frombuffer(base64.b64decode(store_patch.pop("from_base")), dtype="<i4").astype(np.int64)
+    new = from_base < 0
+    changed = _store_rows(store_patch)
+    if int(new.sum()) != len(changed[0]) or (len(from_base) and from_base.max(initial=-1) >= len(rows[0])):
+        raise InputError("checkpoint patch: its rows do not match its row order")
+    merged = []
+    for old, fresh in zip(rows, changed):
+        out = np.empty((len(from_base),) + old.shape[1:], dtype=old.dtype)
+        out[~new] = old[from_base[~new]]
+        out[new] = fresh
+        merged.append(out)
+    key, stats, t_first, t_last = merged
+    if encode:
+        store_patch.update(key=key.tolist(), stats=_enc(stats), t_first=_enc(t_first), t_last=_enc(t_last))
+    else:
+        store_patch.update(key=key, stats=stats, t_first=t_first, t_last=t_last)
+    return dict(state, store=store_patch), base
+
+
+__all__ = ["CheckpointBase", "row_digests", "base_of", "make_patch", "apply_patch", "PATCH_FORMAT"]
