@@ -216,11 +216,13 @@ _CHECKPOINTS_SCHEMA = """CREATE TABLE IF NOT EXISTS checkpoints (
         written_at DOUBLE PRECISION NOT NULL
     )"""
 
-# v6: a checkpoint is a base (``state``) and its latest patch (``selfcal.checkpoint``); a
-# patch write leaves the base's TOAST chunks as they are. The cycle's function takes the
-# patch: its schema-5 signature is dropped, so a schema-5 worker still running fails its
-# commits rather than write a base under another worker's patch
-_CHECKPOINT_PATCH = "ALTER TABLE checkpoints ADD COLUMN IF NOT EXISTS patch TEXT"
+# v6: a checkpoint is a base (``state`` renamed ``base``) and its latest patch
+# (``selfcal.checkpoint``); a patch write leaves the base's TOAST chunks as they are. The
+# cycle's function takes the patch and its schema-5 signature is dropped, and the column
+# renamed: a schema-5 worker still running fails its commits and checkpoint writes
+# rather than write a base under another worker's patch
+_CHECKPOINT_PATCH = ["ALTER TABLE checkpoints RENAME COLUMN state TO base",
+                     "ALTER TABLE checkpoints ADD COLUMN patch TEXT"]
 _PROGRESS_FUNCTION_V5 = ("DROP FUNCTION IF EXISTS selfcal_progress(TEXT, BIGINT, BIGINT, TEXT, BIGINT, BIGINT, TEXT, "
                          "TEXT, TEXT, DOUBLE PRECISION, TEXT, BIGINT[], TEXT[], TEXT[], TEXT[], TEXT[])")
 
@@ -297,7 +299,7 @@ _SCHEMA = [
     _CHECKPOINTS_SCHEMA,
     *_WORKERS_SCHEMA,
     _STATE_MOVED,
-    _CHECKPOINT_PATCH,
+    *_CHECKPOINT_PATCH,
     _PROGRESS_FUNCTION,
     _WORKER_UNTIL,
     *_LEASE_EXPIRES,
@@ -322,13 +324,13 @@ MIGRATIONS: dict[int, list[str]] = {
         _WORKER_UNTIL,
         *_LEASE_EXPIRES,
     ],
-    5: [_PROGRESS_FUNCTION_V5, _CHECKPOINT_PATCH, _PROGRESS_FUNCTION],  # v6: checkpoint patches
+    5: [_PROGRESS_FUNCTION_V5, *_CHECKPOINT_PATCH, _PROGRESS_FUNCTION],  # v6: checkpoint patches
 }
 
 _COLS = [*DEVICE_COLUMNS, "state_rev"]
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in _COLS)  # no state
 # what the worker loads: the state comes from the checkpoint (devices.calibrator_state is unused since v4)
-_LOAD_COLS_STATE = ", ".join("c.state" if c == "calibrator_state" else f"d.{c}" for c in _COLS)
+_LOAD_COLS_STATE = ", ".join("c.base" if c == "calibrator_state" else f"d.{c}" for c in _COLS)
 _CKPT_SQL = ", c.device_id IS NOT NULL, c.seq, c.feed_state{} FROM devices d LEFT JOIN checkpoints c " \
             "ON c.device_id = d.device_id WHERE d.device_id = %s"
 _N = len(_COLS)

@@ -64,8 +64,9 @@ _CHECKPOINTS_DDL = """CREATE TABLE IF NOT EXISTS checkpoints (
     written_at REAL NOT NULL
 )"""
 
-# v5: a checkpoint is a base (``state``) and its latest patch (``selfcal.checkpoint``)
-_CHECKPOINT_PATCH_DDL = "ALTER TABLE checkpoints ADD COLUMN patch TEXT"
+# v5: a checkpoint is a base (``state`` renamed ``base``) and its latest patch (``selfcal.checkpoint``)
+_CHECKPOINT_PATCH_DDL = ["ALTER TABLE checkpoints RENAME COLUMN state TO base",
+                         "ALTER TABLE checkpoints ADD COLUMN patch TEXT"]
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
@@ -121,7 +122,7 @@ CREATE TABLE IF NOT EXISTS refusals (
     seq       INTEGER
 );
 CREATE INDEX IF NOT EXISTS refusals_device ON refusals (device_id, id);
-""" + _CHECKPOINTS_DDL + ";\n" + _CHECKPOINT_PATCH_DDL + ";\n"
+""" + _CHECKPOINTS_DDL + ";\n" + "".join(f"{x};\n" for x in _CHECKPOINT_PATCH_DDL)
 
 #: Batch states: pending, fed to the calibrator once, rejected with a reason.
 PENDING, FED, REJECTED = 0, 1, 2
@@ -161,7 +162,7 @@ MIGRATIONS = {
         "WHERE calibrator_state IS NOT NULL",
         "UPDATE devices SET calibrator_state = NULL",
     ],
-    4: [_CHECKPOINT_PATCH_DDL],  # v5: checkpoint patches (every checkpoint so far is a base)
+    4: list(_CHECKPOINT_PATCH_DDL),  # v5: checkpoint patches (every checkpoint so far is a base)
 }
 
 _N_DEVICE_COLS = len(DEVICE_COLUMNS)
@@ -169,7 +170,7 @@ _N_DEVICE_COLS = len(DEVICE_COLUMNS)
 # a megabyte for a device worn for weeks (thousands of pose cells) and no read needs
 _DEVICE_READ_COLS = ", ".join("NULL" if c == "calibrator_state" else f"d.{c}" for c in DEVICE_COLUMNS)
 # what the worker loads: the state comes from the checkpoint (devices.calibrator_state is unused since v4)
-_LOAD_COLS_STATE = ", ".join("c.state" if c == "calibrator_state" else f"d.{c}" for c in DEVICE_COLUMNS)
+_LOAD_COLS_STATE = ", ".join("c.base" if c == "calibrator_state" else f"d.{c}" for c in DEVICE_COLUMNS)
 # the dashboard's page of devices: JSON1's json_extract reads the served calibration's figures
 _FLEET_SQL = fleet_select(lambda key: f"json_extract(v.calibration, '$.{key}')",
                           lambda key: f"json_extract(v.calibration, '$.{key}')")

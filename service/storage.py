@@ -286,14 +286,16 @@ def upsert_checkpoint_sql(device_id: str, seq: str, state: str, patch: str, feed
     """SQL that writes a device's checkpoint from six value expressions (placeholders, or
     a PL/pgSQL function's parameters), never an older state over a newer one.
 
-    A full ``state`` (``patch`` NULL) replaces the base and clears the patch; a ``patch``
-    (``state`` NULL) replaces the patch and keeps the base, whose text is not written
-    again (PostgreSQL keeps its TOAST chunks). A patch with no checkpoint row to patch
-    stores an empty base, which no patch applies to: its restore fails, loudly."""
-    return (f"INSERT INTO checkpoints(device_id, seq, state, patch, feed_state, written_at) "
+    A full ``state`` (``patch`` NULL) replaces the base (column ``base``) and clears the
+    patch; a ``patch`` (``state`` NULL) replaces the patch and keeps the base, whose text
+    is not written again (PostgreSQL keeps its TOAST chunks). A patch with no checkpoint
+    row to patch stores an empty base, which no patch applies to: its restore fails,
+    loudly. (The column was ``state`` before patches: a process of that release fails
+    its checkpoint writes and reads instead of writing a base under a patch.)"""
+    return (f"INSERT INTO checkpoints(device_id, seq, base, patch, feed_state, written_at) "
             f"VALUES ({device_id}, {seq}, COALESCE({state}, ''), {patch}, {feed_state}, {written_at}) "
             "ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, "
-            "state = CASE WHEN excluded.patch IS NULL THEN excluded.state ELSE checkpoints.state END, "
+            "base = CASE WHEN excluded.patch IS NULL THEN excluded.base ELSE checkpoints.base END, "
             "patch = excluded.patch, feed_state = excluded.feed_state, written_at = excluded.written_at "
             "WHERE checkpoints.seq IS NULL OR excluded.seq >= checkpoints.seq")
 

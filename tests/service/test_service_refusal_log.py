@@ -156,6 +156,7 @@ def test_a_schema_5_postgres_database_gets_checkpoint_patches(tmp_path):
         conn.execute(f"CREATE FUNCTION selfcal_progress({args}, OUT conflict TEXT, OUT numbers INTEGER[], "
                      "OUT error TEXT) LANGUAGE sql AS $$ SELECT 'schema 5'::text, NULL::integer[], NULL::text $$")
         conn.execute("ALTER TABLE checkpoints DROP COLUMN patch")
+        conn.execute("ALTER TABLE checkpoints RENAME COLUMN base TO state")
         conn.execute("INSERT INTO devices(device_id, created_at, processed_seq, feed_state) "
                      "VALUES ('dev-5', 0, 4, '{\"samples\": 100}')")
         conn.execute("INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) "
@@ -177,6 +178,9 @@ def test_a_schema_5_postgres_database_gets_checkpoint_patches(tmp_path):
     with psycopg.connect(url, autocommit=True) as conn:
         assert conn.execute("SELECT array_agg(pronargs) FROM pg_proc WHERE proname = 'selfcal_progress'"
                             ).fetchone()[0] == [17]
+        with pytest.raises(psycopg.errors.UndefinedColumn):  # a schema-5 worker's checkpoint write
+            conn.execute("INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) "
+                         "VALUES ('dev-5', 6, '{}', '{}', 0) ON CONFLICT (device_id) DO UPDATE SET state = excluded.state")
 
 
 def test_the_refit_worker_logs_refits_without_a_model_and_rejected_batches():
