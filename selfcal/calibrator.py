@@ -1014,8 +1014,12 @@ class OnlineCalibrator:
         """A calibrator from a stored base and its latest patch (None: the base alone), and
         the base's :class:`CheckpointBase` for the next patches."""
         if patch_text is None:
-            obj = cls.from_json(base_text)
-            return obj, checkpoint_base_of(base_text, obj.store)
+            d = json.loads(base_text)
+            obj = cls.from_json(d)
+            # a patch is made against the rows of the text; a state of format 1 has none
+            # (its poses are re-filed on load): its next checkpoint is in full
+            return obj, (checkpoint_base_of(base_text, obj.store)
+                         if d.get("format_version") == STATE_FORMAT_VERSION else None)
         state, base = apply_patch(base_text, patch_text, encode=False)
         return cls.from_json(state), base
 

@@ -116,14 +116,19 @@ def apply_patch(base_text: str, patch_text: str, encode: bool = True) -> tuple[d
     if patch.get("base_crc32") != zlib.crc32(raw) or patch.get("base_bytes") != len(raw):
         raise InputError(f"checkpoint patch: made against another base (CRC-32 {patch.get('base_crc32')}, "
                          f"{patch.get('base_bytes')} bytes; the stored base has {zlib.crc32(raw)}, {len(raw)} bytes)")
-    base_state = json.loads(base_text)
-    rows = _store_rows(base_state["store"])
+    try:
+        rows = _store_rows(json.loads(base_text)["store"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"checkpoint patch: its base has no pose store rows ({type(exc).__name__}: {exc})") from None
     base = CheckpointBase(zlib.crc32(raw), len(raw), row_digests(*rows))
     state = patch["state"]
-    store_patch = dict(state["store"])
-    from_base = np.frombuffer(base64.b64decode(store_patch.pop("from_base")), dtype="<i4").astype(np.int64)
+    try:
+        store_patch = dict(state["store"])
+        from_base = np.frombuffer(base64.b64decode(store_patch.pop("from_base")), dtype="<i4").astype(np.int64)
+        changed = _store_rows(store_patch)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"checkpoint patch: no pose store rows ({type(exc).__name__}: {exc})") from None
     new = from_base < 0
-    changed = _store_rows(store_patch)
     if int(new.sum()) != len(changed[0]) or (len(from_base) and from_base.max(initial=-1) >= len(rows[0])):
         raise InputError("checkpoint patch: its rows do not match its row order")
     merged = []

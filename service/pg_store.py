@@ -48,6 +48,7 @@ from selfcal_service.storage import (
     VersionRecord,
     RefusalRecord,
     device_from_row,
+    base_tag_of,
     upsert_checkpoint,
     upsert_checkpoint_sql,
     with_checkpoint,
@@ -141,7 +142,7 @@ _INGEST_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_ingest(
 _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
         p_device TEXT, p_expected_seq BIGINT, p_expected_rev BIGINT, p_owner TEXT, p_seq BIGINT,
         p_samples BIGINT, p_status TEXT, p_last_refit TEXT, p_feed TEXT, p_at DOUBLE PRECISION,
-        p_state TEXT, p_patch TEXT, p_fed BIGINT[], p_v_status TEXT[], p_v_source TEXT[], p_v_calibration TEXT[],
+        p_state TEXT, p_patch TEXT, p_base_tag TEXT, p_fed BIGINT[], p_v_status TEXT[], p_v_source TEXT[], p_v_calibration TEXT[],
         p_v_provenance TEXT[], OUT conflict TEXT, OUT numbers INTEGER[], OUT error TEXT)
     LANGUAGE plpgsql AS $fn$
     DECLARE
@@ -173,6 +174,18 @@ _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
             INSERT INTO devices(device_id, created_at) VALUES (p_device, p_at) ON CONFLICT DO NOTHING;
         END LOOP;
         numbers := '{}';
+        IF p_state IS NOT NULL OR p_patch IS NOT NULL THEN  -- first: a checkpoint not written is a conflict
+            IF p_state IS NOT NULL AND p_patch IS NOT NULL THEN
+                error := 'a checkpoint is a full state or a patch, not both';
+                RETURN;
+            END IF;
+            UPSERT_CHECKPOINT;
+            IF NOT FOUND THEN
+                conflict := format('device %s: its checkpoint changed under the worker', p_device);
+                numbers := NULL;
+                RETURN;
+            END IF;
+        END IF;
         IF COALESCE(cardinality(p_v_status), 0) > 0 THEN
             SELECT COALESCE(MAX(version), 0) INTO v_n FROM versions WHERE device_id = p_device;
             FOR i IN 1 .. cardinality(p_v_status) LOOP
@@ -188,9 +201,6 @@ _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
             updated_at = extract(epoch from clock_timestamp()),
             state_rev = state_rev + 1
             WHERE device_id = p_device;
-        IF p_state IS NOT NULL OR p_patch IS NOT NULL THEN
-            UPSERT_CHECKPOINT;
-        END IF;
         IF COALESCE(cardinality(p_fed), 0) > 0 THEN
             UPDATE batches SET state = 1 WHERE device_id = p_device AND seq = ANY(p_fed) AND state = 0;
         END IF;
@@ -203,8 +213,8 @@ _PROGRESS_FUNCTION = """CREATE OR REPLACE FUNCTION selfcal_progress(
             error := SQLSTATE || ': ' || SQLERRM;
       END;
     END
-    $fn$""".replace("UPSERT_CHECKPOINT", upsert_checkpoint_sql("p_device", "p_seq", "p_state", "p_patch", "p_feed",
-                                                                    "p_at"))
+    $fn$""".replace("UPSERT_CHECKPOINT", upsert_checkpoint_sql(
+    "p_device", "p_seq", "p_state", "p_base_tag", "p_patch", "p_feed", "p_at"))
 
 # the calibrator state in its own table, written every checkpoint_samples rather than every
 # cycle (devices.calibrator_state stays, always NULL since v4)
@@ -222,6 +232,7 @@ _CHECKPOINTS_SCHEMA = """CREATE TABLE IF NOT EXISTS checkpoints (
 # renamed: a schema-5 worker still running fails its commits and checkpoint writes
 # rather than write a base under another worker's patch
 _CHECKPOINT_PATCH = ["ALTER TABLE checkpoints RENAME COLUMN state TO base",
+                     "ALTER TABLE checkpoints ADD COLUMN base_tag TEXT",
                      "ALTER TABLE checkpoints ADD COLUMN patch TEXT"]
 _PROGRESS_FUNCTION_V5 = ("DROP FUNCTION IF EXISTS selfcal_progress(TEXT, BIGINT, BIGINT, TEXT, BIGINT, BIGINT, TEXT, "
                          "TEXT, TEXT, DOUBLE PRECISION, TEXT, BIGINT[], TEXT[], TEXT[], TEXT[], TEXT[])")
@@ -542,7 +553,8 @@ class PostgresStore(GroupCommitStore):
 
     def load_device(self, device_id: str, with_state: bool = True) -> DeviceRecord | None:
         cols = _LOAD_COLS_STATE if with_state else _DEVICE_READ_COLS
-        rows = self._read(f"SELECT {cols}{_CKPT_SQL.format(', c.patch' if with_state else '')}", (device_id,))
+        rows = self._read(f"SELECT {cols}{_CKPT_SQL.format(', c.patch, c.base_tag' if with_state else '')}",
+                          (device_id,))
         return with_checkpoint(device_from_row(rows[0][:_N]), rows[0][_N:]) if rows else None
 
     def fed_batches(self, device_id: str, after_seq: int | None, upto_seq: int | None,
@@ -554,14 +566,14 @@ class PostgresStore(GroupCommitStore):
         return [PendingBatch(r[0], r[1], r[2], bytes(r[3])) for r in rows]
 
     def write_checkpoint(self, device_id: str, seq: int | None, state: str | None, feed_state: dict[str, Any],
-                         state_rev: int | None = None, patch: str | None = None) -> bool:
+                         state_rev: int | None = None, patch: str | None = None,
+                         patch_base: str | None = None) -> bool:
         def op(conn: Any) -> bool:
             row = conn.execute("SELECT processed_seq, state_rev FROM devices WHERE device_id = %s FOR UPDATE",
                                (device_id,)).fetchone()
             if row is None or row[0] != seq or (state_rev is not None and row[1] != state_rev):
                 return False
-            upsert_checkpoint(conn, "%s", device_id, seq, state, feed_state, time.time(), patch)
-            return True
+            return upsert_checkpoint(conn, "%s", device_id, seq, state, feed_state, time.time(), patch, patch_base)
 
         op.device_id = device_id  # type: ignore[attr-defined]
         return self._submit(op).result()
@@ -621,9 +633,10 @@ class PostgresStore(GroupCommitStore):
                 (p.processed_seq, p.samples_added, p.calibrator_status,
                  None if p.last_refit is None else dumps_json(p.last_refit), dumps_json(p.feed_state),
                  numbers[-1] if numbers else None, p.device_id))
-            if p.calibrator_state is not None or p.calibrator_patch is not None:
-                upsert_checkpoint(conn, "%s", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now,
-                                  p.calibrator_patch)
+            if (p.calibrator_state is not None or p.calibrator_patch is not None) and not upsert_checkpoint(
+                    conn, "%s", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now,
+                    p.calibrator_patch, p.calibrator_patch_base):
+                raise ConflictError(f"device {p.device_id}: its checkpoint changed under the worker")
             if p.fed_seqs:
                 conn.execute("UPDATE batches SET state = 1 WHERE device_id = %s AND seq = ANY(%s) AND state = 0",
                              (p.device_id, list(p.fed_seqs)))
@@ -661,10 +674,12 @@ class PostgresStore(GroupCommitStore):
             now = time.time()
             conflict, numbers, error = conn.execute(
                 "SELECT conflict, numbers, error FROM selfcal_progress(%s, %s, %s, %s, %s, %s, %s, %s, %s, %s, "
-                "%s, %s, %s::bigint[], %s::text[], %s::text[], %s::text[], %s::text[])",
+                "%s, %s, %s, %s::bigint[], %s::text[], %s::text[], %s::text[], %s::text[])",
                 (p.device_id, p.expected_processed_seq, p.expected_state_rev, p.lease_owner, p.processed_seq,
                  p.samples_added, p.calibrator_status, None if p.last_refit is None else dumps_json(p.last_refit),
-                 dumps_json(p.feed_state), now, p.calibrator_state, p.calibrator_patch, list(p.fed_seqs),
+                 dumps_json(p.feed_state), now, p.calibrator_state, p.calibrator_patch,
+                 base_tag_of(p.calibrator_state) if p.calibrator_state is not None else p.calibrator_patch_base,
+                 list(p.fed_seqs),
                  [v.status for v in vs],
                  [v.source for v in vs], [dumps_json(v.calibration) for v in vs],
                  [dumps_json(v.provenance) for v in vs])).fetchone()

@@ -62,7 +62,7 @@ class Settings(BaseModel):
     checkpoint_patch_fraction: float = Field(
         0.25, ge=0, le=1,
         description="a checkpoint is written as a patch against the last full state written (its base: the changed "
-                    "pose cells and the rest of the state, ~10 % of it for a worn insole) while the patch is at most "
+                    "pose cells and the rest of the state, 3-7 % of it for a worn insole) while the patch is at most "
                     "this fraction of the base's size; past it, a new full base. 0: every checkpoint in full",
     )
     cache_max_devices: int = Field(

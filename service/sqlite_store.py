@@ -66,6 +66,7 @@ _CHECKPOINTS_DDL = """CREATE TABLE IF NOT EXISTS checkpoints (
 
 # v5: a checkpoint is a base (``state`` renamed ``base``) and its latest patch (``selfcal.checkpoint``)
 _CHECKPOINT_PATCH_DDL = ["ALTER TABLE checkpoints RENAME COLUMN state TO base",
+                         "ALTER TABLE checkpoints ADD COLUMN base_tag TEXT",
                          "ALTER TABLE checkpoints ADD COLUMN patch TEXT"]
 
 _SCHEMA = """
@@ -321,7 +322,7 @@ class SQLiteStore(GroupCommitStore):
     def load_device(self, device_id: str, with_state: bool = True) -> DeviceRecord | None:
         row = self._reader().execute(
             f"SELECT {_LOAD_COLS_STATE if with_state else _DEVICE_READ_COLS}, c.device_id IS NOT NULL, c.seq, c.feed_state"
-            f"{', c.patch' if with_state else ''} FROM devices d LEFT JOIN checkpoints c ON c.device_id = d.device_id WHERE d.device_id = ?",
+            f"{', c.patch, c.base_tag' if with_state else ''} FROM devices d LEFT JOIN checkpoints c ON c.device_id = d.device_id WHERE d.device_id = ?",
             (device_id,),
         ).fetchone()
         return with_checkpoint(device_from_row(row[:_N_DEVICE_COLS]), row[_N_DEVICE_COLS:]) if row else None
@@ -336,14 +337,14 @@ class SQLiteStore(GroupCommitStore):
         return [PendingBatch(*r) for r in rows]
 
     def write_checkpoint(self, device_id: str, seq: int | None, state: str | None, feed_state: dict[str, Any],
-                         state_rev: int | None = None, patch: str | None = None) -> bool:
+                         state_rev: int | None = None, patch: str | None = None,
+                         patch_base: str | None = None) -> bool:
         # (one process: no revision to check)
         def op(conn: sqlite3.Connection) -> bool:
             row = conn.execute("SELECT processed_seq FROM devices WHERE device_id = ?", (device_id,)).fetchone()
             if row is None or row[0] != seq:
                 return False
-            upsert_checkpoint(conn, "?", device_id, seq, state, feed_state, time.time(), patch)
-            return True
+            return upsert_checkpoint(conn, "?", device_id, seq, state, feed_state, time.time(), patch, patch_base)
 
         return self._submit(op).result()
 
@@ -391,9 +392,10 @@ class SQLiteStore(GroupCommitStore):
             )
             if cur.rowcount != 1:
                 raise ConflictError(f"device {p.device_id}: processed_seq changed under the worker")
-            if p.calibrator_state is not None or p.calibrator_patch is not None:
-                upsert_checkpoint(conn, "?", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now,
-                                  p.calibrator_patch)
+            if (p.calibrator_state is not None or p.calibrator_patch is not None) and not upsert_checkpoint(
+                    conn, "?", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now,
+                    p.calibrator_patch, p.calibrator_patch_base):
+                raise ConflictError(f"device {p.device_id}: its checkpoint changed under the worker")
             if p.fed_seqs:
                 conn.executemany(
                     "UPDATE batches SET state = 1 WHERE device_id = ? AND seq = ? AND state = 0",

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import abc
 import json
+import zlib
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -101,6 +102,8 @@ class DeviceRecord:
     # the checkpoint's latest patch against ``calibrator_state`` (its base), or None: the
     # base alone is the checkpoint (``selfcal.checkpoint``; read with the state only)
     calibrator_patch: str | None = None
+    # the stored base's tag (:func:`base_tag`; None before schema 6/5 wrote one)
+    calibrator_base_tag: str | None = None
 
 
 @dataclass
@@ -162,6 +165,9 @@ class Progress:
     # ``calibrator_state`` None): the checkpoint's patch is replaced and its base kept. A
     # full ``calibrator_state`` replaces the base and clears the patch.
     calibrator_patch: str | None = None
+    # the tag (:func:`base_tag`) of the base the patch was made against: the patch is
+    # written only onto that base, and the commit is a ConflictError otherwise
+    calibrator_patch_base: str | None = None
 
 
 @dataclass
@@ -281,10 +287,23 @@ def device_from_row(row: tuple) -> DeviceRecord:
     )
 
 
-def upsert_checkpoint_sql(device_id: str, seq: str, state: str, patch: str, feed_state: str,
+def base_tag(crc32: int, n_bytes: int) -> str:
+    """The tag of a checkpoint base: its text's CRC-32 and length in bytes (UTF-8)."""
+    return f"{crc32 & 0xFFFFFFFF:08x}-{n_bytes}"
+
+
+def base_tag_of(text: str) -> str:
+    """:func:`base_tag` of a state text."""
+    raw = text.encode()
+    return base_tag(zlib.crc32(raw), len(raw))
+
+
+def upsert_checkpoint_sql(device_id: str, seq: str, state: str, tag: str, patch: str, feed_state: str,
                           written_at: str) -> str:
-    """SQL that writes a device's checkpoint from six value expressions (placeholders, or
-    a PL/pgSQL function's parameters), never an older state over a newer one.
+    """SQL that writes a device's checkpoint from seven value expressions (placeholders,
+    or a PL/pgSQL function's parameters), never an older state over a newer one, and a
+    patch only onto the base it was made against (``tag``: the full state's tag, or the
+    patch's base's); a row it must not write is left as it is (no row counted).
 
     A full ``state`` (``patch`` NULL) replaces the base (column ``base``) and clears the
     patch; a ``patch`` (``state`` NULL) replaces the patch and keeps the base, whose text
@@ -292,31 +311,39 @@ def upsert_checkpoint_sql(device_id: str, seq: str, state: str, patch: str, feed
     row to patch stores an empty base, which no patch applies to: its restore fails,
     loudly. (The column was ``state`` before patches: a process of that release fails
     its checkpoint writes and reads instead of writing a base under a patch.)"""
-    return (f"INSERT INTO checkpoints(device_id, seq, base, patch, feed_state, written_at) "
-            f"VALUES ({device_id}, {seq}, COALESCE({state}, ''), {patch}, {feed_state}, {written_at}) "
+    return (f"INSERT INTO checkpoints(device_id, seq, base, base_tag, patch, feed_state, written_at) "
+            f"VALUES ({device_id}, {seq}, COALESCE({state}, ''), {tag}, {patch}, {feed_state}, {written_at}) "
             "ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, "
             "base = CASE WHEN excluded.patch IS NULL THEN excluded.base ELSE checkpoints.base END, "
+            "base_tag = CASE WHEN excluded.patch IS NULL THEN excluded.base_tag ELSE checkpoints.base_tag END, "
             "patch = excluded.patch, feed_state = excluded.feed_state, written_at = excluded.written_at "
-            "WHERE checkpoints.seq IS NULL OR excluded.seq >= checkpoints.seq")
+            "WHERE (checkpoints.seq IS NULL OR excluded.seq >= checkpoints.seq) "
+            "AND (excluded.patch IS NULL OR checkpoints.base_tag = excluded.base_tag)")
 
 
 def upsert_checkpoint(conn: Any, placeholder: str, device_id: str, seq: int | None, state: str | None,
-                      feed_state: dict[str, Any], now: float, patch: str | None = None) -> None:
-    """Write a device's checkpoint (a full ``state``, or a ``patch`` against the stored
-    base) on a connection (``placeholder``: ``?`` for sqlite3, ``%s`` for psycopg), in
-    the caller's transaction."""
-    if (state is None) == (patch is None):
-        raise ValueError("a checkpoint is a full state or a patch, exactly one of them")
-    conn.execute(upsert_checkpoint_sql(*[placeholder] * 6),
-                 (device_id, seq, state, patch, dumps_json(feed_state), now))
+                      feed_state: dict[str, Any], now: float, patch: str | None = None,
+                      patch_base: str | None = None) -> bool:
+    """Write a device's checkpoint (a full ``state``, or a ``patch`` made against the base
+    tagged ``patch_base``) on a connection (``placeholder``: ``?`` for sqlite3, ``%s``
+    for psycopg), in the caller's transaction. False if the row was left as it was (a
+    newer checkpoint, or another base than the patch's)."""
+    if (state is None) == (patch is None) or (patch is not None and patch_base is None):
+        raise ValueError("a checkpoint is a full state or a patch with its base's tag, exactly one of them")
+    cur = conn.execute(upsert_checkpoint_sql(*[placeholder] * 7),
+                       (device_id, seq, state, base_tag_of(state) if patch is None else patch_base, patch,
+                        dumps_json(feed_state), now))
+    return cur.rowcount == 1
 
 
 def with_checkpoint(rec: DeviceRecord, cols: tuple) -> DeviceRecord:
-    """``rec`` with its checkpoint from the columns (exists, seq, feed_state JSON[, patch])."""
+    """``rec`` with its checkpoint from the columns (exists, seq, feed_state JSON[, patch,
+    base tag])."""
     exists, seq, feed = cols[:3]
     if exists:
         rec.checkpoint = Checkpoint(seq=seq, feed_state=json.loads(feed) if feed else {})
         rec.calibrator_patch = cols[3] if len(cols) > 3 else None
+        rec.calibrator_base_tag = cols[4] if len(cols) > 4 else None
     return rec
 
 
@@ -374,9 +401,10 @@ class Storage(abc.ABC):
     @abc.abstractmethod
     def write_checkpoint(self, device_id: str, seq: int | None, state: str | None,
                          feed_state: dict[str, Any], state_rev: int | None = None,
-                         patch: str | None = None) -> bool:
-        """Write a calibrator state (full ``state``, or a ``patch`` against the stored base
-        with ``state`` None) as the device's checkpoint at ``seq`` if the device's
+                         patch: str | None = None, patch_base: str | None = None) -> bool:
+        """Write a calibrator state (full ``state``, or a ``patch`` made against the stored
+        base tagged ``patch_base``, with ``state`` None; not written if the stored base is
+        another) as the device's checkpoint at ``seq`` if the device's
         ``processed_seq`` is still ``seq`` and (when given; PostgreSQL) its ``state_rev``
         is still ``state_rev`` (else nothing: a newer cycle or an admin seed was
         committed); True if written. Durable on return."""

@@ -39,6 +39,7 @@ from selfcal_service.storage import (
     RefusalRecord,
     Storage,
     StorageUnavailable,
+    base_tag,
 )
 
 log = logging.getLogger("selfcal.service.worker")
@@ -415,7 +416,8 @@ class RefitWorker:
         ckpt = full.checkpoint
         if ckpt is not None and full.calibrator_state:
             cal, base = self.factory.restore_checkpoint(full.calibrator_state, full.calibrator_patch)
-            if base is not None:
+            # patched later only if the row's tag is this base's (a row of an older schema has none)
+            if base is not None and full.calibrator_base_tag == base_tag(base.crc32, base.n_bytes):
                 self._bases[rec.device_id] = base
         elif ckpt is not None and full.calibrator_patch is not None:
             raise ValueError(f"device {rec.device_id}: its checkpoint is a patch with no base")
@@ -464,24 +466,27 @@ class RefitWorker:
     def _checkpoint_texts(self, device_id: str, cal: Calibrator) -> tuple[str | None, str | None, Any]:
         """A checkpoint of ``cal``: (full state or None, patch or None, the base once it is
         written). A patch against this worker's base of the device while it is at most
-        ``checkpoint_patch_fraction`` of it; else the full state, the next base."""
+        ``checkpoint_patch_fraction`` of it; else the full state, the next base. The store
+        writes a patch only onto its base (its tag), so a base another writer replaced
+        makes the write a conflict, never a patch on the wrong base."""
         base = self._bases.get(device_id)
         if base is not None and self.checkpoint_patch_fraction > 0 and hasattr(cal, "checkpoint_patch"):
             patch = cal.checkpoint_patch(base)
             if len(patch) <= self.checkpoint_patch_fraction * base.n_bytes:
-                self.metrics.inc("selfcal_worker_checkpoint_patches_total")
-                self.metrics.inc("selfcal_worker_checkpoint_bytes_total", len(patch))
                 return None, patch, base
         full = cal.to_json()
-        self.metrics.inc("selfcal_worker_checkpoint_bytes_total", len(full))
         return full, None, (cal.checkpoint_base(full) if hasattr(cal, "checkpoint_base") else None)
 
-    def _based(self, device_id: str, base: Any) -> None:
-        """The checkpoint just committed for a device stands on ``base`` (None: unknown)."""
+    def _based(self, device_id: str, state: str | None, patch: str | None, base: Any) -> None:
+        """The checkpoint (full ``state`` or ``patch``) just committed for a device stands on
+        ``base`` (None: unknown); counted."""
         if base is None:
             self._bases.pop(device_id, None)
         else:
             self._bases[device_id] = base
+        if patch is not None:
+            self.metrics.inc("selfcal_worker_checkpoint_patches_total")
+        self.metrics.inc("selfcal_worker_checkpoint_bytes_total", len(patch if patch is not None else state or ""))
 
     def _checkpoint_now(self, device_id: str) -> bool:
         """Write the cached calibrator of a device (the caller holds its lock) if it is
@@ -493,13 +498,17 @@ class RefitWorker:
             return False
         try:
             state, patch, base = self._checkpoint_texts(device_id, cached[1])
-            written = self.store.write_checkpoint(device_id, dirty[0], state, dirty[2], state_rev=dirty[1],
-                                                  patch=patch)
+            written = self.store.write_checkpoint(
+                device_id, dirty[0], state, dirty[2], state_rev=dirty[1], patch=patch,
+                patch_base=None if patch is None else base_tag(base.crc32, base.n_bytes))
         except Exception as exc:  # noqa: BLE001 - the next restore replays instead
             log.warning("device %s: checkpoint not written (%s); a restore replays", device_id, exc)
+            self._bases.pop(device_id, None)  # (it may have been written: the next one is in full)
             return False
         if written:
-            self._based(device_id, base)
+            self._based(device_id, state, patch, base)
+        else:  # a newer cycle, or another writer's base: the next checkpoint is in full
+            self._bases.pop(device_id, None)
         return written
 
     def _plan(self, rec: DeviceRecord, rows: list[PendingBatch], now: float):
@@ -599,6 +608,7 @@ class RefitWorker:
             samples_added=samples,
             calibrator_state=state,
             calibrator_patch=patch,
+            calibrator_patch_base=None if patch is None else base_tag(base.crc32, base.n_bytes),
             calibrator_status=str(cal.status),
             last_refit=last_refit,
             feed_state=feed,
@@ -614,7 +624,7 @@ class RefitWorker:
         self._keep(device_id, (progress.processed_seq, rev), cal)
         if checkpoint:
             self._dirty.pop(device_id, None)
-            self._based(device_id, base)
+            self._based(device_id, state, patch, base)
             self.metrics.inc("selfcal_worker_checkpoints_total")
         else:
             self._dirty[device_id] = (progress.processed_seq, rev, feed)
@@ -954,7 +964,7 @@ class RefitWorker:
         if cal is not None:
             self._keep(device_id, (expected, rev), cal)
             self._dirty.pop(device_id, None)
-            self._based(device_id, cal.checkpoint_base(state) if hasattr(cal, "checkpoint_base") else None)
+            self._based(device_id, state, None, cal.checkpoint_base(state) if hasattr(cal, "checkpoint_base") else None)
         else:  # the calibrator did not change: what is cached stays valid
             cached = self._cache.get(device_id)
             if cached is not None and rec is not None and cached[0] == (expected, rec.state_rev):

@@ -255,11 +255,13 @@ def test_the_one_round_trip_commit_writes_and_refuses_as_the_statements_do(two_s
         if refused:
             assert outcomes["dev-f"][0] == "refused" and refused in outcomes["dev-f"][1]
         assert _rows(a, "dev-f") == _rows(a, "dev-s"), kw
-    # an older checkpoint never replaces a newer one, on either path
+    # an older checkpoint never replaces a newer one, on either path: the cycle is refused
+    # as a conflict (since checkpoint patches: a checkpoint not written is never silent)
     for device, commit in paths.items():
         a.write_checkpoint(device, 3, '{"s": "newer"}', {"samples": 9})
         a._read("UPDATE checkpoints SET seq = 10 WHERE device_id = %s RETURNING 1", (device,))
-        commit(cycle(device, processed_seq=3, fed_seqs=[], calibrator_state='{"s": "older"}')).result(timeout=30)
+        with pytest.raises(ConflictError, match="checkpoint changed under the worker"):
+            commit(cycle(device, processed_seq=3, fed_seqs=[], calibrator_state='{"s": "older"}')).result(timeout=30)
         assert a.load_device(device).calibrator_state == '{"s": "newer"}'
     assert _rows(a, "dev-f") == _rows(a, "dev-s")
     assert [x.version for x in a.history("dev-f")] == [1, 2, 3]

@@ -350,3 +350,74 @@ def test_a_checkpoint_written_as_a_patch_restores_the_calibrator_exactly(tmp_pat
         assert rec.calibrator_state == second._cache["ins"][1].to_json()
     finally:
         store.close()
+
+
+def test_a_patch_is_never_written_onto_a_base_another_worker_replaced(tmp_path, stream):
+    """A worker that lost a device late writes its full state (a new base) after another
+    worker restored the device from the old base. The second worker's next patch, made
+    against the old base, is refused by the store (a conflict: nothing of the cycle is
+    written); the worker restores from the new base and goes on, and a restore then gives
+    its calibrator exactly. (Before the base tag, the patch went onto the new base and no
+    restore of the device could succeed again.)"""
+    cfg, batches = stream
+    store = _open(backend_db(tmp_path / "rebased.db"))
+    try:
+        _ingest(store, batches[:7])
+        old = _worker(store, cfg, checkpoint_samples=CKPT)
+        _drain(old)  # a base at seq 4; seqs 5 and 6 fed since, not written
+        new = _worker(store, cfg, checkpoint_samples=CKPT)
+        new.checkpoint_patch_fraction = 1e9
+        new._calibrator(store.load_device("ins", with_state=False))  # the old base + a replay of 5, 6
+        assert "ins" in new._bases
+        old.checkpoint_patch_fraction = 0.0
+        assert old.flush_checkpoints() == 1  # the late full write: a new base at seq 6
+        _ingest(store, batches[7:20])
+        conflicts = 0
+        for _ in range(40):
+            try:
+                if not new.process("ins"):
+                    break
+            except Exception as exc:  # noqa: BLE001 - the loop's handling, in short
+                assert "checkpoint changed under the worker" in str(exc)
+                conflicts += 1
+        assert conflicts == 1 and new.replays == 2  # the refused cycle, then a restore from the new base
+        rec = store.load_device("ins")
+        assert rec.processed_seq == 19 and rec.checkpoint.seq > 6 and rec.calibrator_patch is not None
+        fresh = _worker(store, cfg, checkpoint_samples=CKPT)
+        cal = fresh._calibrator(store.load_device("ins", with_state=False))  # base + patch + replay
+        assert cal.to_json() == new._cache["ins"][1].to_json()
+    finally:
+        store.close()
+
+
+def test_a_checkpoint_patch_is_written_only_onto_its_base(tmp_path, stream):
+    """The store's guard itself: a patch tagged with another base is not written (the
+    cycle is a conflict, ``write_checkpoint`` returns False); tagged with the stored base,
+    it is, and the base stays."""
+    from selfcal_service.storage import ConflictError, Progress, base_tag_of
+
+    cfg, batches = stream
+    store = _open(backend_db(tmp_path / "guard.db"))
+    try:
+        _ingest(store, batches[:3])
+
+        def cycle(seq, state=None, patch=None, patch_base=None):
+            rec = store.load_device("ins", with_state=False)
+            return Progress(device_id="ins", expected_processed_seq=rec.processed_seq, processed_seq=seq,
+                            samples_added=N, calibrator_state=state, calibrator_patch=patch,
+                            calibrator_patch_base=patch_base, calibrator_status="provisional", last_refit=None,
+                            feed_state={"samples": (seq + 1) * N}, fed_seqs=[seq], expected_state_rev=rec.state_rev)
+
+        store.commit_progress(cycle(0, state='{"base": 0}')).result(timeout=30)
+        with pytest.raises(ConflictError, match="checkpoint changed"):
+            store.commit_progress(cycle(1, patch='{"p": 1}', patch_base=base_tag_of('{"base": 1}'))).result(timeout=30)
+        rec = store.load_device("ins")
+        assert (rec.processed_seq, rec.checkpoint.seq, rec.calibrator_patch) == (0, 0, None)  # nothing written
+        assert not store.write_checkpoint("ins", 0, None, {}, state_rev=rec.state_rev, patch='{"p": 0}',
+                                          patch_base=base_tag_of('{"base": 1}'))
+        store.commit_progress(cycle(1, patch='{"p": 1}', patch_base=base_tag_of('{"base": 0}'))).result(timeout=30)
+        rec = store.load_device("ins")
+        assert (rec.calibrator_state, rec.calibrator_patch, rec.checkpoint.seq) == ('{"base": 0}', '{"p": 1}', 1)
+        assert rec.calibrator_base_tag == base_tag_of('{"base": 0}')
+    finally:
+        store.close()

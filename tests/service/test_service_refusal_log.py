@@ -132,15 +132,18 @@ def test_a_schema_1_postgres_database_gets_the_refusal_log(tmp_path):
             conn.execute("UPDATE devices SET lease_owner = 'old', lease_until = 1e12 WHERE device_id = 'dev-s'")
         # v6: one cycle function, the one that takes a checkpoint patch
         assert conn.execute("SELECT array_agg(pronargs) FROM pg_proc WHERE proname = 'selfcal_progress'"
-                            ).fetchone()[0] == [17]
+                            ).fetchone()[0] == [18]
     assert SCHEMA_VERSION == 6
 
 
 @only_postgres
 def test_a_schema_5_postgres_database_gets_checkpoint_patches(tmp_path):
-    """v5 -> v6: the checkpoints get a patch column (the stored states are bases) and the
-    cycle function of schema 5 is dropped, so a schema-5 worker left running cannot commit
-    a full state under another worker's patch; a cycle then commits a patch."""
+    """v5 -> v6: the checkpoints get a patch column (the stored states are bases, with no
+    tag: no patch is written onto one, the next checkpoint is in full) and the cycle
+    function of schema 5 is dropped, so a schema-5 worker left running cannot commit a
+    full state under another worker's patch; a cycle then commits a patch."""
+    from selfcal_service.storage import ConflictError, base_tag_of
+
     import psycopg
 
     from selfcal_service.pg_store import PostgresStore
@@ -156,6 +159,7 @@ def test_a_schema_5_postgres_database_gets_checkpoint_patches(tmp_path):
         conn.execute(f"CREATE FUNCTION selfcal_progress({args}, OUT conflict TEXT, OUT numbers INTEGER[], "
                      "OUT error TEXT) LANGUAGE sql AS $$ SELECT 'schema 5'::text, NULL::integer[], NULL::text $$")
         conn.execute("ALTER TABLE checkpoints DROP COLUMN patch")
+        conn.execute("ALTER TABLE checkpoints DROP COLUMN base_tag")
         conn.execute("ALTER TABLE checkpoints RENAME COLUMN base TO state")
         conn.execute("INSERT INTO devices(device_id, created_at, processed_seq, feed_state) "
                      "VALUES ('dev-5', 0, 4, '{\"samples\": 100}')")
@@ -167,17 +171,25 @@ def test_a_schema_5_postgres_database_gets_checkpoint_patches(tmp_path):
     try:
         rec = store.load_device("dev-5")
         assert (rec.calibrator_state, rec.calibrator_patch, rec.checkpoint.seq) == ('{"s": 1}', None, 4)
+        assert rec.calibrator_base_tag is None
         cycle = _cycle("dev-5", [])
         cycle.expected_processed_seq, cycle.processed_seq, cycle.fed_seqs = 4, 5, [5]
-        cycle.calibrator_patch = '{"p": 5}'
+        cycle.calibrator_patch, cycle.calibrator_patch_base = '{"p": 5}', base_tag_of('{"s": 1}')
+        with pytest.raises(ConflictError, match="checkpoint changed"):
+            store.commit_progress(cycle).result(timeout=30)
+        cycle.calibrator_state, cycle.calibrator_patch, cycle.calibrator_patch_base = '{"s": 5}', None, None
+        assert store.commit_progress(cycle).result(timeout=30) == []
+        cycle = _cycle("dev-5", [])
+        cycle.expected_processed_seq, cycle.processed_seq, cycle.fed_seqs = 5, 6, [6]
+        cycle.calibrator_patch, cycle.calibrator_patch_base = '{"p": 6}', base_tag_of('{"s": 5}')
         assert store.commit_progress(cycle).result(timeout=30) == []
         rec = store.load_device("dev-5")
-        assert (rec.calibrator_state, rec.calibrator_patch, rec.checkpoint.seq) == ('{"s": 1}', '{"p": 5}', 5)
+        assert (rec.calibrator_state, rec.calibrator_patch, rec.checkpoint.seq) == ('{"s": 5}', '{"p": 6}', 6)
     finally:
         store.close()
     with psycopg.connect(url, autocommit=True) as conn:
         assert conn.execute("SELECT array_agg(pronargs) FROM pg_proc WHERE proname = 'selfcal_progress'"
-                            ).fetchone()[0] == [17]
+                            ).fetchone()[0] == [18]
         with pytest.raises(psycopg.errors.UndefinedColumn):  # a schema-5 worker's checkpoint write
             conn.execute("INSERT INTO checkpoints(device_id, seq, state, feed_state, written_at) "
                          "VALUES ('dev-5', 6, '{}', '{}', 0) ON CONFLICT (device_id) DO UPDATE SET state = excluded.state")
