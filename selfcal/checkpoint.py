@@ -11,6 +11,9 @@ that are not in the base. Applied to its base, it gives the full state, byte for
   rows have equal digests; a changed row keeps its old digest with probability ~2^-64.
 * A patch names its base by the CRC-32 and length of the base's text, and applying it to
   any other base raises :class:`~selfcal.errors.InputError`.
+* The row order is stored as the zlib-compressed differences of consecutive entries: a
+  store keeps its rows in order and appends new cells, so they are nearly all 1 (a week-
+  worn store's ~5 600 entries take a few hundred bytes instead of ~30 KB).
 * Nothing here knows the storage: the refit worker decides when a patch is small enough
   (``patch_fraction`` of the base) and the stores keep the base and the latest patch.
 """
@@ -79,6 +82,19 @@ def base_of(text: str, store) -> CheckpointBase:
     return CheckpointBase(zlib.crc32(raw), len(raw), row_digests(store.key, store.stats, store.t_first, store.t_last))
 
 
+def _encode_order(from_base: np.ndarray) -> str:
+    """Row order (base row or -1, (m,) int) -> text: zlib'd differences of consecutive
+    entries (the first from -1), little-endian int32, base64."""
+    steps = np.diff(from_base, prepend=-1).astype("<i4")
+    return base64.b64encode(zlib.compress(steps.tobytes(), 6)).decode("ascii")
+
+
+def _decode_order(text: str) -> np.ndarray:
+    """Inverse of :func:`_encode_order`, (m,) int64."""
+    steps = np.frombuffer(zlib.decompress(base64.b64decode(text)), dtype="<i4").astype(np.int64)
+    return np.cumsum(steps) - 1
+
+
 def make_patch(state: dict[str, Any], store, base: CheckpointBase) -> str:
     """The patch text that turns ``base`` into ``state`` (a calibrator's ``state()`` dict
     whose ``"store"`` entry serialises ``store``)."""
@@ -87,12 +103,12 @@ def make_patch(state: dict[str, Any], store, base: CheckpointBase) -> str:
     ranked = base.digests[order]
     pos = np.minimum(np.searchsorted(ranked, digests), max(len(ranked) - 1, 0))
     hit = ranked[pos] == digests if len(ranked) else np.zeros(len(digests), bool)
-    from_base = np.where(hit, order[pos] if len(ranked) else 0, -1).astype("<i4")
+    from_base = np.where(hit, order[pos] if len(ranked) else 0, -1).astype(np.int64)
     new = ~hit
     store_patch = dict(state["store"])
     store_patch.update(key=store.key[new].tolist(), stats=_enc(store.stats[new]), t_first=_enc(store.t_first[new]),
                        t_last=_enc(store.t_last[new]),
-                       from_base=base64.b64encode(from_base.tobytes()).decode("ascii"))
+                       from_base=_encode_order(from_base))
     out = {"format": PATCH_FORMAT, "format_version": PATCH_FORMAT_VERSION, "base_crc32": base.crc32,
            "base_bytes": base.n_bytes, "state": dict(state, store=store_patch)}
     return json.dumps(out, allow_nan=True, separators=(",", ":"))
@@ -124,12 +140,13 @@ def apply_patch(base_text: str, patch_text: str, encode: bool = True) -> tuple[d
     state = patch["state"]
     try:
         store_patch = dict(state["store"])
-        from_base = np.frombuffer(base64.b64decode(store_patch.pop("from_base")), dtype="<i4").astype(np.int64)
+        from_base = _decode_order(store_patch.pop("from_base"))
         changed = _store_rows(store_patch)
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, zlib.error) as exc:
         raise InputError(f"checkpoint patch: no pose store rows ({type(exc).__name__}: {exc})") from None
     new = from_base < 0
-    if int(new.sum()) != len(changed[0]) or (len(from_base) and from_base.max(initial=-1) >= len(rows[0])):
+    if int(new.sum()) != len(changed[0]) or (len(from_base) and (from_base.max(initial=-1) >= len(rows[0])
+                                                                 or from_base.min(initial=-1) < -1)):
         raise InputError("checkpoint patch: its rows do not match its row order")
     merged = []
     for old, fresh in zip(rows, changed):

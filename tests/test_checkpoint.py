@@ -126,3 +126,26 @@ def test_make_patch_against_an_empty_base():
     cal.feed_poses(*poses)
     patch = make_patch(cal.state(store_rows=False), cal.store, base)
     assert OnlineCalibrator.from_checkpoint(base_text, patch)[0].to_json() == cal.to_json()
+
+
+def test_the_row_order_round_trips_and_a_corrupt_one_is_refused():
+    from selfcal.checkpoint import _decode_order, _encode_order
+
+    rng = np.random.default_rng(8)
+    for order in (np.arange(5000), np.r_[np.arange(3000), -1, -1, np.arange(3001, 4000)], np.array([], int),
+                  rng.permutation(800), np.where(rng.random(900) < 0.1, -1, np.arange(900))):
+        assert np.array_equal(_decode_order(_encode_order(order)), order)
+    assert len(_encode_order(np.arange(5000))) < 200  # runs of +1 cost next to nothing
+    poses = _poses(6, 120)
+    cal = _calibrator()
+    cal.feed_poses(*[a[:60] for a in poses])
+    base_text = cal.to_json()
+    base = cal.checkpoint_base(base_text)
+    cal.feed_poses(*[a[60:] for a in poses])
+    broken = json.loads(cal.checkpoint_patch(base))
+    broken["state"]["store"]["from_base"] = _encode_order(np.full(len(cal.store), -7))
+    with pytest.raises(InputError, match="row order"):
+        apply_patch(base_text, json.dumps(broken))
+    broken["state"]["store"]["from_base"] = "not base64 zlib"
+    with pytest.raises(InputError):
+        apply_patch(base_text, json.dumps(broken))
