@@ -30,6 +30,18 @@ def _calibrator(max_cells: int | None = None) -> OnlineCalibrator:
     return OnlineCalibrator(cfg, "affine9")
 
 
+def _fed_past_a_base(seed: int):
+    """A calibrator fed 60 of 120 poses, its state then (the base text and what a writer
+    keeps of it), and the calibrator fed the other 60."""
+    poses = _poses(seed, 120)
+    cal = _calibrator()
+    cal.feed_poses(*[a[:60] for a in poses])
+    base_text = cal.to_json()
+    base = cal.checkpoint_base(base_text)
+    cal.feed_poses(*[a[60:] for a in poses])
+    return cal, base_text, base
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("max_cells", [None, 16])
 def test_a_patch_applied_to_its_base_gives_the_full_state_byte_for_byte(seed, max_cells):
@@ -72,12 +84,7 @@ def test_a_worn_states_patch_holds_the_changed_cells_only():
 
 
 def test_a_patch_refuses_another_base_and_bad_text():
-    poses = _poses(4, 120)
-    cal = _calibrator()
-    cal.feed_poses(*[a[:60] for a in poses])
-    base_text = cal.to_json()
-    base = cal.checkpoint_base(base_text)
-    cal.feed_poses(*[a[60:] for a in poses])
+    cal, base_text, base = _fed_past_a_base(4)
     patch = cal.checkpoint_patch(base)
     other = base_text.replace('"n_refits":', '"n_refits": ', 1)  # same content, other bytes
     with pytest.raises(InputError, match="another base"):
@@ -136,12 +143,7 @@ def test_the_row_order_round_trips_and_a_corrupt_one_is_refused():
                   rng.permutation(800), np.where(rng.random(900) < 0.1, -1, np.arange(900))):
         assert np.array_equal(_decode_order(_encode_order(order)), order)
     assert len(_encode_order(np.arange(5000))) < 200  # runs of +1 cost next to nothing
-    poses = _poses(6, 120)
-    cal = _calibrator()
-    cal.feed_poses(*[a[:60] for a in poses])
-    base_text = cal.to_json()
-    base = cal.checkpoint_base(base_text)
-    cal.feed_poses(*[a[60:] for a in poses])
+    cal, base_text, base = _fed_past_a_base(6)
     broken = json.loads(cal.checkpoint_patch(base))
     broken["state"]["store"]["from_base"] = _encode_order(np.full(len(cal.store), -7))
     with pytest.raises(InputError, match="row order"):
