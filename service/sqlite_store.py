@@ -41,8 +41,8 @@ from selfcal_service.storage import (
     SeqJump,
     VersionRecord,
     RefusalRecord,
+    base_tag_of,
     device_from_row,
-    upsert_checkpoint,
     with_checkpoint,
     dumps_json,
     fleet_from_row,
@@ -65,9 +65,47 @@ _CHECKPOINTS_DDL = """CREATE TABLE IF NOT EXISTS checkpoints (
 )"""
 
 # v5: a checkpoint is a base (``state`` renamed ``base``) and its latest patch (``selfcal.checkpoint``)
+# SQLite keeps a row in one record: updating a column beside a megabyte base rewrites the
+# record (unless the new one has the very same size), so the latest patch, with the seq
+# and feed bookkeeping it stands at, has a table of its own (PostgreSQL: a column)
 _CHECKPOINT_PATCH_DDL = ["ALTER TABLE checkpoints RENAME COLUMN state TO base",
                          "ALTER TABLE checkpoints ADD COLUMN base_tag TEXT",
-                         "ALTER TABLE checkpoints ADD COLUMN patch TEXT"]
+                         "CREATE TABLE IF NOT EXISTS checkpoint_patches (device_id TEXT PRIMARY KEY, seq INTEGER, "
+                         "patch TEXT NOT NULL, feed_state TEXT NOT NULL, written_at REAL NOT NULL)"]
+# a device's checkpoint as read: its latest patch's seq and bookkeeping when it has one
+_CKPT_COLS = ("c.device_id IS NOT NULL, CASE WHEN p.device_id IS NULL THEN c.seq ELSE p.seq END, "
+              "CASE WHEN p.device_id IS NULL THEN c.feed_state ELSE p.feed_state END")
+_CKPT_JOIN = ("LEFT JOIN checkpoints c ON c.device_id = d.device_id "
+              "LEFT JOIN checkpoint_patches p ON p.device_id = d.device_id")
+
+
+def write_checkpoint_sqlite(conn: sqlite3.Connection, device_id: str, seq: int | None, state: str | None,
+                            feed_state: dict[str, Any], now: float, patch: str | None = None,
+                            patch_base: str | None = None) -> bool:
+    """Write a device's checkpoint in the caller's transaction: a full ``state`` (the base;
+    its patch is deleted) or a ``patch`` made against the base tagged ``patch_base`` (in
+    ``checkpoint_patches``; the base's record is not touched). Never an older checkpoint
+    over a newer one, nor a patch onto another base: False then, and nothing written."""
+    if (state is None) == (patch is None) or (patch is not None and patch_base is None):
+        raise ValueError("a checkpoint is a full state or a patch with its base's tag, exactly one of them")
+    row = conn.execute(f"SELECT c.base_tag, {_CKPT_COLS} FROM (SELECT ? AS device_id) d {_CKPT_JOIN}",
+                       (device_id,)).fetchone()
+    tag, exists, stored_seq = row[0], row[1], row[2]
+    if exists and stored_seq is not None and (seq is None or seq < stored_seq):
+        return False
+    if patch is not None:
+        if not exists or tag != patch_base:
+            return False
+        conn.execute("INSERT OR REPLACE INTO checkpoint_patches(device_id, seq, patch, feed_state, written_at) "
+                     "VALUES (?, ?, ?, ?, ?)", (device_id, seq, patch, dumps_json(feed_state), now))
+        return True
+    conn.execute("INSERT INTO checkpoints(device_id, seq, base, base_tag, feed_state, written_at) "
+                 "VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT (device_id) DO UPDATE SET seq = excluded.seq, "
+                 "base = excluded.base, base_tag = excluded.base_tag, feed_state = excluded.feed_state, "
+                 "written_at = excluded.written_at",
+                 (device_id, seq, state, base_tag_of(state), dumps_json(feed_state), now))
+    conn.execute("DELETE FROM checkpoint_patches WHERE device_id = ?", (device_id,))
+    return True
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
@@ -321,8 +359,8 @@ class SQLiteStore(GroupCommitStore):
 
     def load_device(self, device_id: str, with_state: bool = True) -> DeviceRecord | None:
         row = self._reader().execute(
-            f"SELECT {_LOAD_COLS_STATE if with_state else _DEVICE_READ_COLS}, c.device_id IS NOT NULL, c.seq, c.feed_state"
-            f"{', c.patch, c.base_tag' if with_state else ''} FROM devices d LEFT JOIN checkpoints c ON c.device_id = d.device_id WHERE d.device_id = ?",
+            f"SELECT {_LOAD_COLS_STATE if with_state else _DEVICE_READ_COLS}, {_CKPT_COLS}"
+            f"{', p.patch, c.base_tag' if with_state else ''} FROM devices d {_CKPT_JOIN} WHERE d.device_id = ?",
             (device_id,),
         ).fetchone()
         return with_checkpoint(device_from_row(row[:_N_DEVICE_COLS]), row[_N_DEVICE_COLS:]) if row else None
@@ -344,7 +382,7 @@ class SQLiteStore(GroupCommitStore):
             row = conn.execute("SELECT processed_seq FROM devices WHERE device_id = ?", (device_id,)).fetchone()
             if row is None or row[0] != seq:
                 return False
-            return upsert_checkpoint(conn, "?", device_id, seq, state, feed_state, time.time(), patch, patch_base)
+            return write_checkpoint_sqlite(conn, device_id, seq, state, feed_state, time.time(), patch, patch_base)
 
         return self._submit(op).result()
 
@@ -392,8 +430,8 @@ class SQLiteStore(GroupCommitStore):
             )
             if cur.rowcount != 1:
                 raise ConflictError(f"device {p.device_id}: processed_seq changed under the worker")
-            if (p.calibrator_state is not None or p.calibrator_patch is not None) and not upsert_checkpoint(
-                    conn, "?", p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now,
+            if (p.calibrator_state is not None or p.calibrator_patch is not None) and not write_checkpoint_sqlite(
+                    conn, p.device_id, p.processed_seq, p.calibrator_state, p.feed_state, now,
                     p.calibrator_patch, p.calibrator_patch_base):
                 raise ConflictError(f"device {p.device_id}: its checkpoint changed under the worker")
             if p.fed_seqs:

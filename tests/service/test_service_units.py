@@ -190,7 +190,8 @@ def test_v1_database_migrates_and_keeps_the_resend_rules(tmp_path):
     conn = sqlite3.connect(db)
     version = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()[0]
     assert version == "5"  # v2 added the batch states, v3 the refusal log (empty), v4 checkpoints, v5 patches
-    assert conn.execute("SELECT COUNT(*) FROM checkpoints WHERE patch IS NOT NULL").fetchone()[0] == 0
+    assert conn.execute("SELECT COUNT(*) FROM checkpoint_patches").fetchone()[0] == 0
+    assert conn.execute("SELECT COUNT(*) FROM checkpoints WHERE base_tag IS NULL").fetchone()[0] == 1  # migrated
     assert conn.execute("SELECT COUNT(*) FROM refusals").fetchone()[0] == 0
     assert conn.execute("SELECT calibrator_state FROM devices").fetchall() == [(None,)]  # moved, not copied
 
