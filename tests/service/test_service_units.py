@@ -353,3 +353,39 @@ def test_tune_gc_freezes_what_exists_and_sets_the_young_threshold():
         assert gc.get_freeze_count() == 0
     finally:
         gc.set_threshold(*old)
+
+
+def test_sqlite_checkpoint_patches_have_their_own_table_and_the_same_guards():
+    """SQLite keeps the latest patch in ``checkpoint_patches`` (a column beside the base
+    made it rewrite the whole record). The effective checkpoint is the patch's seq and
+    bookkeeping; never an older checkpoint over a newer one, never a patch onto another
+    base or onto no base; a full write replaces the base and deletes the patch."""
+    import sqlite3
+
+    from selfcal_service import sqlite_store
+    from selfcal_service.storage import base_tag_of
+
+    conn = sqlite3.connect(":memory:", isolation_level=None)
+    conn.executescript(sqlite_store._SCHEMA)
+    write = sqlite_store.write_checkpoint_sqlite
+
+    def stored():
+        return conn.execute(f"SELECT {sqlite_store._CKPT_COLS}, c.base, p.patch, c.base_tag "
+                            f"FROM (SELECT 'd' AS device_id) d {sqlite_store._CKPT_JOIN}").fetchone()
+
+    b5 = '{"b": 5}'
+    assert not write(conn, "d", 1, None, {}, 0.0, patch="P1", patch_base=base_tag_of(b5))  # no base to patch
+    assert stored()[0] == 0
+    assert write(conn, "d", 5, b5, {"s": 5}, 0.0)
+    assert write(conn, "d", 7, None, {"s": 7}, 0.0, patch="P7", patch_base=base_tag_of(b5))
+    assert stored() == (1, 7, '{"s":7}', b5, "P7", base_tag_of(b5))
+    assert not write(conn, "d", 6, '{"b": 6}', {"s": 6}, 0.0)  # older than the patch
+    assert not write(conn, "d", 6, None, {"s": 6}, 0.0, patch="P6", patch_base=base_tag_of(b5))
+    assert not write(conn, "d", None, b5, {}, 0.0)
+    assert not write(conn, "d", 8, None, {"s": 8}, 0.0, patch="P8", patch_base=base_tag_of('{"b": 0}'))
+    assert stored() == (1, 7, '{"s":7}', b5, "P7", base_tag_of(b5))
+    assert write(conn, "d", 8, '{"b": 8}', {"s": 8}, 0.0)  # a new base: the patch goes
+    assert stored() == (1, 8, '{"s":8}', '{"b": 8}', None, base_tag_of('{"b": 8}'))
+    assert conn.execute("SELECT COUNT(*) FROM checkpoint_patches").fetchone()[0] == 0
+    with pytest.raises(ValueError):
+        write(conn, "d", 9, '{"b": 9}', {}, 0.0, patch="P9", patch_base="x")  # both
