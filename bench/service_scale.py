@@ -69,18 +69,25 @@ def gc_pauses(m: dict[str, float]) -> dict:
 
 
 def preload_worn(db: str, args) -> None:
-    """Every bench device gets the worn state before the service starts (bench/worker_cycle.py)."""
+    """Every bench device gets the worn state before the service starts (bench/worker_cycle.py).
+    Unless ``--in-step``, each device's checkpoint is given a random age below the
+    checkpoint interval, so that the devices' next checkpoints are spread over it."""
+    import numpy as np
     from worker_cycle import preload
 
     from selfcal_service.main import open_store
     from selfcal_service.settings import load_settings
 
-    store = open_store(load_settings({}, overrides={"db_path": db}, environ={}))
+    settings = load_settings({}, overrides={"db_path": db}, environ={})
+    every = args.checkpoint_samples if args.checkpoint_samples is not None else settings.checkpoint_samples
+    ages = np.zeros(args.devices, int) if args.in_step or every <= 1 else \
+        np.random.default_rng(7).integers(0, every, args.devices)
+    store = open_store(settings)
     store.open()
     try:
         t0 = time.monotonic()
         for d in range(args.devices):
-            preload(store, f"bench-{d:05d}", args.worn)
+            preload(store, f"bench-{d:05d}", args.worn, checkpoint_age=int(ages[d]))
         print(f"    preloaded {args.devices} worn devices in {time.monotonic() - t0:.0f} s", flush=True)
     finally:
         store.close()
@@ -271,8 +278,10 @@ def main() -> int:
                          "calibrator refit every few minutes (~5x the refit work of wear)")
     ap.add_argument("--in-step", action="store_true",
                     help="with --worn-days: every device's clock continues the worn state's at once, so every "
-                         "calibrator's time-based refit comes due in the same seconds (without it, each device's "
-                         "clock resumes at a random point of its refit period, as in a fleet worn for days)")
+                         "calibrator's time-based refit comes due in the same seconds, and every preloaded "
+                         "checkpoint is as old as the others, so they all come due together (without it, each "
+                         "device's clock resumes at a random point of its refit period and its checkpoint at a "
+                         "random point of the checkpoint interval, as in a fleet worn for days)")
     ap.add_argument("--checkpoint-samples", type=int, default=None,
                     help="[service] checkpoint_samples of every process (default: the service's; 0: the state at every cycle)")
     ap.add_argument("--patch-fraction", type=float, default=None,

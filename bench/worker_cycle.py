@@ -61,14 +61,21 @@ def machine_busy_s() -> float:
     return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")  # guest time is counted in user already
 
 
-def preload(store, device_id: str, worn: tuple[str, dict, int]) -> None:
+def preload(store, device_id: str, worn: tuple[str, dict, int], checkpoint_age: int = 0) -> None:
     """Give a device (no batch fed yet) the worn state, as a cycle that fed the wear would
-    have written it."""
+    have written it. ``checkpoint_age`` > 0: its checkpoint is written as if that many of
+    the worn samples had come after it (the state itself is the worn one), so that a
+    fleet's devices come due for their next checkpoint at different times, as worn
+    devices do, instead of all at once ``checkpoint_samples`` after the preload."""
     from selfcal_service.storage import Progress
 
     store.commit_progress(Progress(
         device_id=device_id, expected_processed_seq=None, processed_seq=None, samples_added=0,
         calibrator_state=worn[0], calibrator_status="calibrated", last_refit=None, feed_state=worn[1])).result()
+    if checkpoint_age > 0:
+        feed = dict(worn[1], samples=int(worn[1]["samples"]) - int(checkpoint_age))
+        if not store.write_checkpoint(device_id, None, worn[0], feed):
+            raise RuntimeError(f"{device_id}: the preloaded checkpoint was not rewritten")
 
 
 def main(argv=None) -> int:
