@@ -33,7 +33,6 @@ from selfcal.poses import N_STATS, _dec, _enc
 
 PATCH_FORMAT = "selfcal-calibrator-patch"
 PATCH_FORMAT_VERSION = 1
-_ROWS = ("key", "stats", "t_first", "t_last")  # the store's per-cell fields, in its JSON order
 
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
@@ -99,12 +98,13 @@ def make_patch(state: dict[str, Any], store, base: CheckpointBase) -> str:
     """The patch text that turns ``base`` into ``state`` (a calibrator's ``state()`` dict
     whose ``"store"`` entry serialises ``store``)."""
     digests = row_digests(store.key, store.stats, store.t_first, store.t_last)
-    order = np.argsort(base.digests, kind="stable")
-    ranked = base.digests[order]
-    pos = np.minimum(np.searchsorted(ranked, digests), max(len(ranked) - 1, 0))
-    hit = ranked[pos] == digests if len(ranked) else np.zeros(len(digests), bool)
-    from_base = np.where(hit, order[pos] if len(ranked) else 0, -1).astype(np.int64)
-    new = ~hit
+    from_base = np.full(len(digests), -1, dtype=np.int64)
+    if len(base.digests):
+        order = np.argsort(base.digests, kind="stable")
+        pos = np.minimum(np.searchsorted(base.digests[order], digests), len(order) - 1)
+        hit = base.digests[order[pos]] == digests
+        from_base[hit] = order[pos[hit]]
+    new = from_base < 0
     store_patch = dict(state["store"])
     store_patch.update(key=store.key[new].tolist(), stats=_enc(store.stats[new]), t_first=_enc(store.t_first[new]),
                        t_last=_enc(store.t_last[new]),
@@ -122,6 +122,7 @@ def apply_patch(base_text: str, patch_text: str, encode: bool = True) -> tuple[d
 
     Raises :class:`InputError` if the patch is not a patch or was made against another base."""
     raw = base_text.encode()
+    crc = zlib.crc32(raw)  # (once: the base is up to megabytes)
     try:
         patch = json.loads(patch_text)
     except ValueError as exc:
@@ -129,14 +130,14 @@ def apply_patch(base_text: str, patch_text: str, encode: bool = True) -> tuple[d
     if not isinstance(patch, dict) or patch.get("format") != PATCH_FORMAT \
             or patch.get("format_version") != PATCH_FORMAT_VERSION:
         raise InputError("checkpoint patch: unknown format or version")
-    if patch.get("base_crc32") != zlib.crc32(raw) or patch.get("base_bytes") != len(raw):
+    if patch.get("base_crc32") != crc or patch.get("base_bytes") != len(raw):
         raise InputError(f"checkpoint patch: made against another base (CRC-32 {patch.get('base_crc32')}, "
-                         f"{patch.get('base_bytes')} bytes; the stored base has {zlib.crc32(raw)}, {len(raw)} bytes)")
+                         f"{patch.get('base_bytes')} bytes; the stored base has {crc}, {len(raw)} bytes)")
     try:
         rows = _store_rows(json.loads(base_text)["store"])
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"checkpoint patch: its base has no pose store rows ({type(exc).__name__}: {exc})") from None
-    base = CheckpointBase(zlib.crc32(raw), len(raw), row_digests(*rows))
+    base = CheckpointBase(crc, len(raw), row_digests(*rows))
     state = patch["state"]
     try:
         store_patch = dict(state["store"])

@@ -42,6 +42,7 @@ from selfcal_service.storage import (
     VersionRecord,
     RefusalRecord,
     base_tag_of,
+    check_checkpoint,
     device_from_row,
     with_checkpoint,
     dumps_json,
@@ -86,8 +87,7 @@ def write_checkpoint_sqlite(conn: sqlite3.Connection, device_id: str, seq: int |
     its patch is deleted) or a ``patch`` made against the base tagged ``patch_base`` (in
     ``checkpoint_patches``; the base's record is not touched). Never an older checkpoint
     over a newer one, nor a patch onto another base: False then, and nothing written."""
-    if (state is None) == (patch is None) or (patch is not None and patch_base is None):
-        raise ValueError("a checkpoint is a full state or a patch with its base's tag, exactly one of them")
+    check_checkpoint(state, patch, patch_base)
     row = conn.execute(f"SELECT c.base_tag, {_CKPT_COLS} FROM (SELECT ? AS device_id) d {_CKPT_JOIN}",
                        (device_id,)).fetchone()
     tag, exists, stored_seq = row[0], row[1], row[2]

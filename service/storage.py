@@ -321,15 +321,22 @@ def upsert_checkpoint_sql(device_id: str, seq: str, state: str, tag: str, patch:
             "AND (excluded.patch IS NULL OR checkpoints.base_tag = excluded.base_tag)")
 
 
+def check_checkpoint(state: str | None, patch: str | None, patch_base: str | None) -> None:
+    """ValueError unless a checkpoint write is exactly one of a full ``state`` or a
+    ``patch`` with the tag of the base it was made against (both stores)."""
+    if (state is None) == (patch is None) or (patch is not None and patch_base is None):
+        raise ValueError("a checkpoint is a full state or a patch with its base's tag, exactly one of them")
+
+
 def upsert_checkpoint(conn: Any, placeholder: str, device_id: str, seq: int | None, state: str | None,
                       feed_state: dict[str, Any], now: float, patch: str | None = None,
                       patch_base: str | None = None) -> bool:
     """Write a device's checkpoint (a full ``state``, or a ``patch`` made against the base
-    tagged ``patch_base``) on a connection (``placeholder``: ``?`` for sqlite3, ``%s``
-    for psycopg), in the caller's transaction. False if the row was left as it was (a
-    newer checkpoint, or another base than the patch's)."""
-    if (state is None) == (patch is None) or (patch is not None and patch_base is None):
-        raise ValueError("a checkpoint is a full state or a patch with its base's tag, exactly one of them")
+    tagged ``patch_base``) on a psycopg connection (``placeholder`` ``%s``; SQLite keeps
+    its patches in a table of their own, ``sqlite_store.write_checkpoint_sqlite``), in
+    the caller's transaction. False if the row was left as it was (a newer checkpoint,
+    or another base than the patch's)."""
+    check_checkpoint(state, patch, patch_base)
     cur = conn.execute(upsert_checkpoint_sql(*[placeholder] * 7),
                        (device_id, seq, state, base_tag_of(state) if patch is None else patch_base, patch,
                         dumps_json(feed_state), now))

@@ -162,6 +162,11 @@ class LeaseConfig:
     idle_s: float = 60.0
 
 
+def _tag_of(base: Any) -> str:
+    """The store's tag (:func:`~selfcal_service.storage.base_tag`) of a calibrator's checkpoint base."""
+    return base_tag(base.crc32, base.n_bytes)
+
+
 def _shard(device_id: str, n: int) -> int:
     return zlib.crc32(device_id.encode()) % n
 
@@ -417,7 +422,7 @@ class RefitWorker:
         if ckpt is not None and full.calibrator_state:
             cal, base = self.factory.restore_checkpoint(full.calibrator_state, full.calibrator_patch)
             # patched later only if the row's tag is this base's (a row of an older schema has none)
-            if base is not None and full.calibrator_base_tag == base_tag(base.crc32, base.n_bytes):
+            if base is not None and full.calibrator_base_tag == _tag_of(base):
                 self._bases[rec.device_id] = base
         elif ckpt is not None and full.calibrator_patch is not None:
             raise ValueError(f"device {rec.device_id}: its checkpoint is a patch with no base")
@@ -500,7 +505,7 @@ class RefitWorker:
             state, patch, base = self._checkpoint_texts(device_id, cached[1])
             written = self.store.write_checkpoint(
                 device_id, dirty[0], state, dirty[2], state_rev=dirty[1], patch=patch,
-                patch_base=None if patch is None else base_tag(base.crc32, base.n_bytes))
+                patch_base=None if patch is None else _tag_of(base))
         except Exception as exc:  # noqa: BLE001 - the next restore replays instead
             log.warning("device %s: checkpoint not written (%s); a restore replays", device_id, exc)
             self._bases.pop(device_id, None)  # (it may have been written: the next one is in full)
@@ -608,7 +613,7 @@ class RefitWorker:
             samples_added=samples,
             calibrator_state=state,
             calibrator_patch=patch,
-            calibrator_patch_base=None if patch is None else base_tag(base.crc32, base.n_bytes),
+            calibrator_patch_base=None if patch is None else _tag_of(base),
             calibrator_status=str(cal.status),
             last_refit=last_refit,
             feed_state=feed,
