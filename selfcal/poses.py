@@ -168,7 +168,8 @@ class PoseStore:
     # times (s) no coarsening merges across: the bias steps found (a cell that mixes windows
     # from both sides of a step has a mean that is neither the old offset nor the new)
     barriers_s: list[float] = field(default_factory=list)
-    _index: dict = field(default_factory=dict, repr=False)
+    # key -> row lookup: (the keys sorted, their rows), or None until next asked
+    _index: tuple | None = field(default=None, repr=False, compare=False)
     # the per-cell derived values of one ``stats`` array, computed once per refit instead of
     # once per use (eigh of every cell's 3x3 scatter): (the array itself, its in-place edit
     # count, the result). Holding the array keeps its id from being reused.
@@ -184,12 +185,13 @@ class PoseStore:
         return int(self.key.shape[0])
 
     def _reindex(self) -> None:
-        self._index = {int(k): i for i, k in enumerate(self.key)}
+        order = np.argsort(self.key, kind="stable")
+        self._index = (self.key[order], order.astype(np.int64))
 
     def _index_stale(self) -> None:
-        """The keys changed: the key -> row dict is rebuilt when next asked (``_bound`` may
+        """The keys changed: the key -> row lookup is rebuilt when next asked (``_bound`` may
         merge several times before then)."""
-        self._index = {}
+        self._index = None
 
     # ------------------------------------------------------------------ keys
     def _keys(self, u: np.ndarray, temp: np.ndarray, t_s: np.ndarray, origin: float | None = None) -> np.ndarray:
@@ -312,23 +314,33 @@ class PoseStore:
         mean, sd, count, t_s, temp, norm = mean[valid], sd[valid], count[valid], t_s[valid], temp[valid], norm[valid]
         u = mean / norm[:, None]
         d = norm - 1.0
-        vn = window_noise_var(u, sd, count, rate_hz, self.config) + self.config.window_floor_g**2
         if self.t_origin is None:
             self.t_origin = float(t_s[0])
         key = self._keys(u, temp, t_s)
-        if not self._index and len(self):
-            self._reindex()
-        row = self._rows(u, d, vn, count, t_s, temp)
-        # model-free gate, with the semantics of adding the windows one by one
-        gated = self._gate(key, row, d)
-        if gated.any():
-            key = key + gated.astype(np.int64)
         # the windows up to the one that opens the last new cell allowed (the caller's, or the
         # one past max_cells): the gate's decisions for them do not depend on later windows
         cap = self.config.max_cells + 1 - len(self)
         if max_new_cells is not None:
             cap = min(cap, int(max_new_cells))
         cap = max(cap, 1)
+        # Only a prefix can be taken: every window that opens a new cell by its own key still
+        # does after the gate (its cell is empty, so it is not gated), so the cut lies at or
+        # before the cap-th of them. The gate and the statistics are computed for that prefix
+        # only (the rest is this method's next call's): with a full store, recomputing them
+        # for every remaining window at each cut made an add quadratic in its windows.
+        pkeys, pfirst = np.unique(key, return_index=True)
+        fresh = np.sort(pfirst[self._rows_of(pkeys) < 0])
+        if fresh.size >= cap and int(fresh[cap - 1]) + 1 < len(key):
+            m = int(fresh[cap - 1]) + 1
+            u, d, sd, count, t_s, temp, key = u[:m], d[:m], sd[:m], count[:m], t_s[:m], temp[:m], key[:m]
+            valid_idx = valid_idx[:m]
+            out["consumed"] = int(valid_idx[-1]) + 1
+        vn = window_noise_var(u, sd, count, rate_hz, self.config) + self.config.window_floor_g**2
+        row = self._rows(u, d, vn, count, t_s, temp)
+        # model-free gate, with the semantics of adding the windows one by one
+        gated = self._gate(key, row, d)
+        if gated.any():
+            key = key + gated.astype(np.int64)
         ukeys, first, inv = np.unique(key, return_index=True, return_inverse=True)
         target = self._rows_of(ukeys)
         if int(np.count_nonzero(target < 0)) >= cap:
@@ -363,13 +375,11 @@ class PoseStore:
             self.t_last[t] = np.maximum(self.t_last[t], tmax[exist])
         new = ~exist
         if new.any():
-            start = len(self)
             self.key = np.concatenate([self.key, ukeys[new]])
             self.stats = np.vstack([self.stats, sums[new]])
             self.t_first = np.concatenate([self.t_first, tmin[new]])
             self.t_last = np.concatenate([self.t_last, tmax[new]])
-            for i, kk in enumerate(ukeys[new]):
-                self._index[int(kk)] = start + i
+            self._index_stale()
         out["added"] = int(len(key))
         out["new_cells"] = int(new.sum())
         out["new_info"] = out["new_cells"]
@@ -397,14 +407,15 @@ class PoseStore:
         row[:, _NTEMP] = has_t
         return row
 
-    def _rows_of(self, keys: np.ndarray, first_of_group: np.ndarray | None = None) -> np.ndarray:
-        """Stored row of each key (-1 if new). With sorted ``keys`` and their group starts,
-        the dict is asked once per distinct key."""
-        if first_of_group is None:
-            return np.array([self._index.get(int(x), -1) for x in keys], dtype=np.int64)
-        heads = np.flatnonzero(first_of_group)
-        rows = np.array([self._index.get(int(keys[i]), -1) for i in heads], dtype=np.int64)
-        return np.repeat(rows, np.diff(np.append(heads, len(keys))))
+    def _rows_of(self, keys: np.ndarray) -> np.ndarray:
+        """Stored row of each key (-1 if new), shape of ``keys`` (int64)."""
+        if self._index is None:
+            self._reindex()
+        sorted_keys, rows = self._index
+        if sorted_keys.size == 0:
+            return np.full(np.shape(keys), -1, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(sorted_keys, keys), sorted_keys.size - 1)
+        return np.where(sorted_keys[pos] == keys, rows[pos], -1)
 
     def _gate_one(self, running: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Gate decisions (k,) of windows with norms ``d`` against their cells' running statistics."""
@@ -431,7 +442,7 @@ class PoseStore:
         first = np.maximum.accumulate(np.where(start, np.arange(k), 0))
         csum = np.cumsum(rs, axis=0)
         before = csum - rs - (csum[first] - rs[first])  # earlier windows of the same key, this batch
-        idx = self._rows_of(ks, first_of_group=start)
+        idx = self._rows_of(ks)
         pre = np.zeros((k, N_STATS))
         if (idx >= 0).any():
             pre[idx >= 0] = self.stats[idx[idx >= 0]]

@@ -69,3 +69,42 @@ def test_coarsening_never_merges_across_a_barrier_and_the_barrier_is_kept():
             assert not store.straddles(tau).any()
         else:
             assert store.straddles(tau).sum() > 0  # without it, coarsening mixes both sides
+
+
+def test_a_full_store_and_a_cap_on_new_cells_change_nothing_either():
+    """With the bound reached many times inside one call, and with ``max_new_cells``,
+    the store and the windows taken are those of adding the windows in pieces or one by
+    one (the call only ever works on the prefix it can take)."""
+    from selfcal.poses import PoseConfig
+
+    cfg = PoseConfig(max_cells=120)  # tight: the bound is reached many times in one call
+    for seed in (11, 12):
+        rng = np.random.default_rng(seed)
+        mean, sd, n, t, temp = windows(rng, 2500)
+        whole = PoseStore.empty(cfg)
+        out = whole.add(mean, sd, n, t, temp)
+        assert out["consumed"] == len(t) and whole.n_merged > 0 and len(whole) <= cfg.max_cells
+        parts = PoseStore.empty(cfg)
+        cuts = np.sort(rng.choice(np.arange(1, len(t)), 150, replace=False))
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(t)]):
+            parts.add(mean[a:b], sd[a:b], n[a:b], t[a:b], temp[a:b])
+        assert (whole.n_gated, whole.n_merged, whole.n_seen) == (parts.n_gated, parts.n_merged, parts.n_seen)
+        ia, ib = np.argsort(whole.key), np.argsort(parts.key)
+        np.testing.assert_array_equal(whole.key[ia], parts.key[ib])
+        np.testing.assert_allclose(whole.stats[ia], parts.stats[ib], rtol=1e-9, atol=1e-9)
+
+        # max_new_cells: the call stops at the window that opens the k-th new cell, the
+        # one a window-by-window feed would stop at
+        for k in (1, 7, 40):
+            capped, single = PoseStore.empty(cfg), PoseStore.empty(cfg)
+            capped.add(mean[:900], sd[:900], n[:900], t[:900], temp[:900])
+            single.add(mean[:900], sd[:900], n[:900], t[:900], temp[:900])
+            got = capped.add(mean[900:], sd[900:], n[900:], t[900:], temp[900:], max_new_cells=k)
+            new, taken = 0, 0
+            for i in range(900, len(t)):
+                new += single.add(mean[i:i + 1], sd[i:i + 1], n[i:i + 1], t[i:i + 1], temp[i:i + 1])["new_cells"]
+                taken += 1
+                if new >= k:
+                    break
+            assert (got["consumed"], got["new_cells"]) == (taken, new)
+            np.testing.assert_array_equal(np.sort(capped.key), np.sort(single.key))
