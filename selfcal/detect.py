@@ -91,6 +91,8 @@ _STEP_SAMPLES = 1 << 16
 # Below this many new windows a call reduces each window directly (less overhead).
 _SMALL_WINDOWS = 64
 
+_UNIT_ROUNDOFF = np.finfo(float).eps / 2
+
 
 # ----------------------------------------------------------------------------- config
 class DetectorConfig(BaseModel):
@@ -442,6 +444,39 @@ def _exact_window_stats(x: np.ndarray, w: int, idx: np.ndarray) -> tuple[np.ndar
     return mean, sd
 
 
+def _sd_limits(p2: list[float], first: list[float], w: int, length: int, thresholds: tuple):
+    """Per channel, the sums of squared deviations a block's rolling sums can decide
+    (see :func:`_sd_within`): ``(in_hi, out_hi, in_lo, out_lo)``, each ``(c, 1)``, or
+    None if a bound overflows (then every window is decided the slow way).
+
+    ``p2``: each channel's sum of squares about the block's first sample ``first``;
+    ``thresholds``: per channel, the upper threshold as a sum of squares over ``1 + r``
+    and over ``1 - r``, and the lower one over ``1 - r`` and ``1 + r`` (``-inf``: no
+    lower bound), ``r`` the reference's relative rounding.
+
+    The error bound of a window's sum of squared deviations, with ``u`` the unit
+    roundoff, ``e1 = 2 (L + 1) u sqrt(L p2) + u sqrt(w p2)`` (a window sum of y, L the
+    block's samples), ``e2 = (2 (L + 2) + 1) u p2`` (of y^2), is
+    ``e2 + (2 sqrt(w p2) e1 + e1^2) / w + 6 u p2 + 4 u^2 w |first| sqrt(p2)``, which is
+    ``c1 p2 + c2 |first| sqrt(p2)``; the margin is twice that.
+    """
+    u = _UNIT_ROUNDOFF
+    k1 = 2 * (length + 1) * u * math.sqrt(length) + u * math.sqrt(w)
+    c1 = (2 * (length + 2) + 1) * u + (2 * math.sqrt(w) * k1 + k1 * k1) / w + 6 * u
+    c2 = 4 * u * u * w
+    in_hi, out_hi, in_lo, out_lo = [], [], [], []
+    for p, f, (hi_in, hi_out, lo_in, lo_out) in zip(p2, first, thresholds):
+        margin = 2 * (c1 * p + c2 * abs(f) * math.sqrt(p)) + 1e-300 if p >= 0 else math.nan
+        if not math.isfinite(margin):
+            return None
+        in_hi.append(hi_in - margin)
+        out_hi.append(hi_out + margin)
+        in_lo.append(lo_in + margin)
+        out_lo.append(lo_out - margin)
+    return (np.array(in_hi)[:, None], np.array(out_hi)[:, None], np.array(in_lo)[:, None],
+            np.array(out_lo)[:, None])
+
+
 def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray) -> np.ndarray:
     """Whether every channel's sample sd lies in ``[lo_sd, hi_sd]``, for every
     ``w``-sample sliding window, decided exactly as :func:`_exact_window_stats` decides.
@@ -476,11 +511,14 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray) -> n
     ok = np.ones(max(m, 0), dtype=bool)
     if m <= 0 or c == 0:
         return ok
-    u = np.finfo(float).eps / 2
+    u = _UNIT_ROUNDOFF
     r = (4 * math.log2(w) + 16) * u  # relative: two-pass reference, sqrt, thresholds
-    hi_ss = hi_sd * hi_sd * (w - 1)
-    lo_ss = np.where(lo_sd > 0, lo_sd * lo_sd * (w - 1), -np.inf)
     inv_w = 1.0 / w
+    thresholds = []
+    for hsd, lsd in zip(hi_sd.tolist(), lo_sd.tolist()):
+        hs = hsd * hsd * (w - 1)
+        ls = lsd * lsd * (w - 1) if lsd > 0 else -math.inf
+        thresholds.append((hs / (1 + r), hs / (1 - r), ls / (1 - r), ls / (1 + r)))
     for lo in range(0, m, _ROLL_BLOCK):
         hi = min(m, lo + _ROLL_BLOCK)
         seg = x[:, lo : hi + w - 1]
@@ -496,26 +534,20 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray) -> n
         s1 *= s1
         s1 *= inv_w
         ss -= s1  # sum of squared deviations of each window, (c, hi - lo)
-        # Rounding bound for this block, per channel: every prefix of y^2 is <= p2.
-        p2 = q[c:, -1]
-        with np.errstate(invalid="ignore", over="ignore"):
-            s1_max = np.sqrt(w * p2)  # |window sum of y| (Cauchy-Schwarz)
-            e1 = 2 * (length + 1) * u * np.sqrt(length * p2) + u * s1_max
-            e2 = 2 * (length + 2) * u * p2 + u * p2
-            e_ss = (e2 + (2 * s1_max * e1 + e1 * e1) * inv_w + 6 * u * p2
-                    + 4 * u * np.abs(seg[:, 0]) * np.sqrt(p2) * w * u)
-            margin = 2 * e_ss + 1e-300
-            in_hi = (hi_ss / (1 + r) - margin)[:, None]
-            out_hi = (hi_ss / (1 - r) + margin)[:, None]
-            in_lo = np.where(np.isfinite(lo_ss), lo_ss / (1 - r) + margin, -np.inf)[:, None]
-            out_lo = np.where(np.isfinite(lo_ss), lo_ss / (1 + r) - margin, -np.inf)[:, None]
-            sure_in = ((ss < in_hi) & (ss > in_lo)).all(axis=0)
-            ok[lo:hi] = sure_in
-            if sure_in.all():
-                continue
-            maybe = ((ss <= out_hi) & (ss >= out_lo)).all(axis=0) & ~sure_in
-            if not np.isfinite(margin).all():
-                maybe = ~sure_in  # overflow: decide every window the slow way
+        # Rounding bound for this block, per channel: every prefix of y^2 is <= p2. In
+        # plain floats (a handful of channels: numpy's per-call cost would dominate).
+        limits = _sd_limits(q[c:, -1].tolist(), seg[:, 0].tolist(), w, length, thresholds)
+        if limits is None:  # overflow: decide every window the slow way
+            ok[lo:hi] = False
+            maybe = np.ones(hi - lo, dtype=bool)
+        else:
+            in_hi, out_hi, in_lo, out_lo = limits
+            with np.errstate(invalid="ignore"):
+                sure_in = ((ss < in_hi) & (ss > in_lo)).all(axis=0)
+                ok[lo:hi] = sure_in
+                if sure_in.all():
+                    continue
+                maybe = ((ss <= out_hi) & (ss >= out_lo)).all(axis=0) & ~sure_in
         unsure = np.flatnonzero(maybe)
         if unsure.size:
             _, sd = _exact_window_stats(x, w, unsure + lo)
@@ -556,16 +588,18 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
         dt = np.diff(t)
         gap = np.zeros(n, dtype=bool)
         gap[1:] = ~(dt > 0) | (dt > cfg.max_gap_s)  # NaN steps break too
-        # Integer counts per window: exact whatever the chunking.
-        cbad = np.zeros(n + 1, dtype=np.int64)
-        cgap = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(bad, out=cbad[1:])
-        np.cumsum(gap, out=cgap[1:])
-        ok = (cbad[w:] - cbad[:m] == 0) & (cgap[w:] - cgap[1 : m + 1] == 0)
+        if not (bad.any() or gap.any()):  # the usual still or clean stretch
+            ok = np.ones(m, dtype=bool)
+        else:  # integer counts per window: exact whatever the chunking
+            cbad = np.zeros(n + 1, dtype=np.int64)
+            cgap = np.zeros(n + 1, dtype=np.int64)
+            np.cumsum(bad, out=cbad[1:])
+            np.cumsum(gap, out=cgap[1:])
+            ok = (cbad[w:] - cbad[:m] == 0) & (cgap[w:] - cgap[1 : m + 1] == 0)
 
         x0 = x if finite.all() else np.where(finite, x, 0.0)
-        lo_sd = np.concatenate((np.full(3, cfg.sd_min_g), np.zeros(k)))
-        hi_sd = np.concatenate((np.full(3, cfg.sd_max_g), np.full(k, cfg.pressure_sd_max_kpa)))
+        lo_sd = np.array((cfg.sd_min_g,) * 3 + (0.0,) * k)
+        hi_sd = np.array((cfg.sd_max_g,) * 3 + (cfg.pressure_sd_max_kpa,) * k)
         if m <= _SMALL_WINDOWS:  # few new windows (small chunks): reduce each one directly
             cand = np.flatnonzero(ok)
             _, sd = _exact_window_stats(x0, w, cand)
@@ -647,23 +681,31 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     temp_mean = np.full(q, np.nan)
     psd = np.full(q, np.nan)
     lengths = hi - lo
-    for length in np.unique(lengths).tolist():
-        rows = np.flatnonzero(lengths == length)
+    one_length = lengths.min() == lengths.max()  # the usual case: no np.unique
+    for length in ([int(lengths[0])] if one_length else np.unique(lengths).tolist()):
+        rows = np.arange(q) if one_length else np.flatnonzero(lengths == length)
         block = max(1, _BLOCK_VALUES // (length * x.shape[0]))
         for b0 in range(0, rows.size, block):
             r = rows[b0 : b0 + block]
-            # acc and pressure in one call: each window of each channel is reduced on its own
-            ch_mean, ch_sd = _exact_window_stats(x[: 3 + kp], length, lo[r])
+            # every channel in one call (acc, pressure, temperature): each window of each
+            # channel is reduced on its own, so a temperature mean is the mean of its values
+            with np.errstate(invalid="ignore", over="ignore"):
+                ch_mean, ch_sd = _exact_window_stats(x, length, lo[r])
             mean[r], sd[r] = ch_mean[:, :3], ch_sd[:, :3]
-            tt = x[-1][lo[r, None] + np.arange(length)]  # (b, length)
-            fin = np.isfinite(tt)
-            every = fin.all(axis=1)
-            if every.any():
-                temp_mean[r[every]] = tt[every].mean(axis=1)
-            for j in np.flatnonzero(~every & fin.any(axis=1)).tolist():  # gaps in temp_c
-                temp_mean[r[j]] = float(np.ascontiguousarray(tt[j][fin[j]]).mean())
+            t_mean = ch_mean[:, -1]
+            whole = np.isfinite(t_mean)  # every value finite (a NaN or inf would show)
+            temp_mean[r[whole]] = t_mean[whole]
+            if not whole.all():  # gaps in temp_c (or a sum past the float range)
+                rr = r[~whole]
+                tt = x[-1][lo[rr, None] + np.arange(length)]  # (b, length)
+                fin = np.isfinite(tt)
+                every = fin.all(axis=1)
+                if every.any():
+                    temp_mean[rr[every]] = tt[every].mean(axis=1)
+                for j in np.flatnonzero(~every & fin.any(axis=1)).tolist():
+                    temp_mean[rr[j]] = float(np.ascontiguousarray(tt[j][fin[j]]).mean())
             if kp:
-                psd[r] = ch_sd[:, 3:].max(axis=1)
+                psd[r] = ch_sd[:, 3 : 3 + kp].max(axis=1)
     return StillWindows(
         mean_g=mean,
         sd_g=sd,
@@ -767,9 +809,14 @@ def step(
     cut_starts: list[np.ndarray] = []
     cut_ends: list[int] = []
     if flags.size:
-        d = np.diff(np.concatenate(([run_open], flags)).astype(np.int8))
-        starts = (np.flatnonzero(d == 1) + j0).tolist()
-        ends = (np.flatnonzero(d == -1) + j0 - 1).tolist()  # last passing window
+        if flags.all():  # the common cases (still or moving throughout) without diffs
+            starts, ends = ([] if run_open else [j0]), []
+        elif not flags.any():
+            starts, ends = [], ([j0 - 1] if run_open else [])
+        else:
+            d = np.diff(np.concatenate(([run_open], flags)).astype(np.int8))
+            starts = (np.flatnonzero(d == 1) + j0).tolist()
+            ends = (np.flatnonzero(d == -1) + j0 - 1).tolist()  # last passing window
         # Runs: (first passing window or None if it opened before, last or None if open).
         firsts: list[int | None] = ([None] if run_open else []) + starts
         runs = [(a, ends[i] if i < len(ends) else None) for i, a in enumerate(firsts)]
