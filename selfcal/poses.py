@@ -328,8 +328,10 @@ class PoseStore:
         # before the cap-th of them. The gate and the statistics are computed for that prefix
         # only (the rest is this method's next call's): with a full store, recomputing them
         # for every remaining window at each cut made an add quadratic in its windows.
-        pkeys, pfirst = np.unique(key, return_index=True)
-        fresh = np.sort(pfirst[self._rows_of(pkeys) < 0])
+        fresh = np.zeros(0, dtype=np.int64)
+        if len(key) > cap:  # (a batch no longer than cap is taken whole, or cut by the gate below)
+            pkeys, pfirst = np.unique(key, return_index=True)
+            fresh = np.sort(pfirst[self._rows_of(pkeys) < 0])
         if fresh.size >= cap and int(fresh[cap - 1]) + 1 < len(key):
             m = int(fresh[cap - 1]) + 1
             u, d, sd, count, t_s, temp, key = u[:m], d[:m], sd[:m], count[:m], t_s[:m], temp[:m], key[:m]
@@ -436,6 +438,10 @@ class PoseStore:
         does not depend on how the windows were split into calls.
         """
         k = len(key)
+        if k == 1:  # one window (a service batch): its cell as stored, nothing before it
+            idx = self._rows_of(key)
+            pre = self.stats[idx] if idx[0] >= 0 else np.zeros((1, N_STATS))
+            return self._gate_one(pre + 0.0, d)  # + 0.0: as the running sums below make -0.0
         order = np.argsort(key, kind="stable")
         ks, rs, ds = key[order], row[order], d[order]
         start, last = _group_edges(ks)
