@@ -45,6 +45,10 @@ from selfcal_service.storage import (
 log = logging.getLogger("selfcal.service.worker")
 
 
+#: Clock resets whose offsets a device's feed state keeps (for replays after a checkpoint).
+RESET_OFFSETS_KEPT = 32
+
+
 class Calibrator(Protocol):
     """What the service needs from ``selfcal.calibrator.OnlineCalibrator`` (internals.md)."""
 
@@ -667,15 +671,27 @@ class RefitWorker:
         timer.start()
 
     # ------------------------------------------------------------ feeding
-    def _prepare(self, batch: Batch, seq: int, feed: dict[str, Any], count: bool = True) -> np.ndarray:
-        """Device time -> fed time: a clock going backwards (reboot) adds a gap, never a reversal."""
+    def _prepare(self, batch: Batch, seq: int, feed: dict[str, Any], count: bool = True,
+                 fed_offsets: dict[int, float] | None = None) -> np.ndarray:
+        """Device time -> fed time: a clock going backwards (reboot) adds a gap, never a reversal.
+
+        The offset a reset gives is kept in the feed state (``reset_offsets``, the last
+        ``RESET_OFFSETS_KEPT``): a replay after a checkpoint (``fed_offsets``, from the
+        device's latest feed state) feeds the batch at the time it was first fed, even if
+        ``time_reset_gap_s`` changed since."""
         offset = float(feed.get("t_offset_s", 0.0))
         last = feed.get("last_t_s")
         t = batch.t_s + offset
         if last is not None and t[0] < last:
-            offset += (last - t[0]) + self.time_reset_gap_s
+            first = (fed_offsets or {}).get(int(seq))
+            if first is not None and batch.t_s[0] + first >= last:
+                offset = first
+            else:
+                offset += (last - t[0]) + self.time_reset_gap_s
             t = batch.t_s + offset
             feed["clock_resets"] = int(feed.get("clock_resets", 0)) + 1
+            kept = [r for r in feed.get("reset_offsets", []) if int(r[0]) != int(seq)]
+            feed["reset_offsets"] = kept[-(RESET_OFFSETS_KEPT - 1):] + [[int(seq), float(offset)]]
             if count:
                 self.metrics.inc("selfcal_clock_resets_total")
         feed["t_offset_s"] = offset
@@ -714,10 +730,13 @@ class RefitWorker:
             events.extend(self._stamp(out, feed))
             run.clear()
 
+        fed_offsets = None
+        if replay and rec is not None:  # the offsets the resets gave when these batches were first fed
+            fed_offsets = {int(q): float(o) for q, o in (rec.feed_state or {}).get("reset_offsets", [])}
         for seq, batch in batches:
             if run and shape(run[-1][1]) != shape(batch):
                 flush()
-            t = self._prepare(batch, seq, feed, count=not replay)
+            t = self._prepare(batch, seq, feed, count=not replay, fed_offsets=fed_offsets)
             self._account(batch, t, seq, feed)
             run.append((t, batch))
             samples += batch.n

@@ -421,3 +421,46 @@ def test_a_checkpoint_patch_is_written_only_onto_its_base(tmp_path, stream):
         assert rec.calibrator_base_tag == base_tag_of('{"base": 0}')
     finally:
         store.close()
+
+
+def test_a_clock_reset_is_replayed_at_the_time_it_was_first_fed(tmp_path, stream):
+    """A device clock that goes back (a reboot) is fed after a gap, never backwards; a
+    worker that restores the device from a checkpoint before the reset feeds the batches
+    at the times they were first fed, even with another ``time_reset_gap_s``: the same
+    calibrator as the worker that fed them."""
+    from selfcal_service.metrics import Metrics
+    from selfcal_service.settings import load_settings
+    from selfcal_service.worker import CalibratorFactory, RefitWorker
+
+    cfg, batches = stream
+    reboot = 6  # the insole restarts before batch 6: its clock begins again at 5 s
+    shift = batches[reboot][1][0] - 5.0
+    rebooted = [(k, t - (shift if k >= reboot else 0.0), acc, temp, pres) for k, t, acc, temp, pres in batches[:9]]
+
+    def worker(store, gap_s):
+        factory = CalibratorFactory(load_settings({}, environ={}).calibrator,
+                                    config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
+        return RefitWorker(store, factory, Metrics(), max_batches_per_cycle=1, checkpoint_samples=CKPT,
+                           time_reset_gap_s=gap_s)
+
+    store = _open(backend_db(tmp_path / "reset.db"))
+    try:
+        _ingest(store, rebooted)
+        first = worker(store, 60.0)
+        while first.process("ins"):
+            pass
+        rec = store.load_device("ins", with_state=False)
+        assert rec.processed_seq == 8 and rec.checkpoint is not None and rec.checkpoint.seq < reboot
+        assert first.metrics.get("selfcal_clock_resets_total") == 1
+        last_before = batches[reboot - 1][1][-1]
+        offset = rec.feed_state["t_offset_s"]
+        assert offset == pytest.approx(last_before - 5.0 + 60.0)  # 60 s after the last sample before it
+        assert rec.feed_state["reset_offsets"] == [[reboot, offset]]
+        want = first._calibrator(rec).to_json()
+
+        second = worker(store, 600.0)  # the setting changed since
+        got = second._calibrator(rec)
+        assert second.replays == 1
+        assert got.to_json() == want
+    finally:
+        store.close()
