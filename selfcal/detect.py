@@ -547,7 +547,9 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray) -> n
                 ok[lo:hi] = sure_in
                 if sure_in.all():
                     continue
-                maybe = ((ss <= out_hi) & (ss >= out_lo)).all(axis=0) & ~sure_in
+                # a channel whose rolling sum overflowed (inf, NaN) cannot rule a window out
+                possible = (ss <= out_hi) & (ss >= out_lo) | ~np.isfinite(ss)
+                maybe = possible.all(axis=0) & ~sure_in
         unsure = np.flatnonzero(maybe)
         if unsure.size:
             _, sd = _exact_window_stats(x, w, unsure + lo)

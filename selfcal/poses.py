@@ -305,8 +305,14 @@ class PoseStore:
         k = mean.shape[0]
         temp = np.full(k, np.nan) if temp_c is None else temp_c
         sd = np.full((k, 3), 3e-3) if sd_g is None else np.where(np.isfinite(sd_g), sd_g, 3e-3)
-        norm = np.sqrt(np.einsum("ij,ij->i", mean, mean)) if k else np.zeros(0)
-        valid = np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s) & (count >= 1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            norm = np.sqrt(np.einsum("ij,ij->i", mean, mean)) if k else np.zeros(0)
+            # a window whose statistics would overflow (|mean| or sd past ~1e154 g) is no still
+            # pose: stored, its inf would make the sums of its cell (and the gate's running
+            # sums of every window sorted after it in the batch) NaN
+            representable = np.isfinite(norm * norm) & np.all(np.isfinite(sd * sd), axis=1)
+        valid = (np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s) & (count >= 1)
+                 & representable)
         out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0, "consumed": k}
         if not valid.any():
             return out
@@ -319,6 +325,7 @@ class PoseStore:
         key = self._keys(u, temp, t_s)
         # the windows up to the one that opens the last new cell allowed (the caller's, or the
         # one past max_cells): the gate's decisions for them do not depend on later windows
+        # (up to rounding: the batch's running sums are taken across its key groups)
         cap = self.config.max_cells + 1 - len(self)
         if max_new_cells is not None:
             cap = min(cap, int(max_new_cells))
@@ -435,13 +442,16 @@ class PoseStore:
         Each window is compared with its cell as it stands just before it (stored windows
         plus the earlier, not gated, windows of this batch): vectorised with running sums,
         and a group that a gate decision changes is redone window by window. The result
-        does not depend on how the windows were split into calls.
+        does not depend on how the windows were split into calls, up to rounding: the
+        running sums are taken across the batch's key groups, so a window within a few ulps
+        of its threshold can be decided either way by the other windows of its batch.
         """
         k = len(key)
         if k == 1:  # one window (a service batch): its cell as stored, nothing before it
             idx = self._rows_of(key)
             pre = self.stats[idx] if idx[0] >= 0 else np.zeros((1, N_STATS))
-            return self._gate_one(pre + 0.0, d)  # + 0.0: as the running sums below make -0.0
+            zero = row - row
+            return self._gate_one(pre + (zero - zero), d)  # the general path's arithmetic for k = 1
         order = np.argsort(key, kind="stable")
         ks, rs, ds = key[order], row[order], d[order]
         start, last = _group_edges(ks)

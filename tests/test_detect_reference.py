@@ -142,3 +142,30 @@ def test_huge_values_without_clip_identical():
     want = run(ref, cfg, data)
     assert len(want) > 5
     assert_identical(run(fast, cfg, data), want)
+
+
+def test_rolling_sums_that_overflow_are_decided_exactly():
+    """Values near 1e153 g with no clip and huge thresholds: the rolling sums of squares
+    overflow (a window's sum of squared deviations comes out -inf or NaN) although every
+    window's two-pass sd is finite; those windows are reduced in full, as the reference
+    does (a review found them ruled out unchecked)."""
+    rng = np.random.default_rng(0)
+    n, w = 100, 20
+    x = np.empty((3, n))
+    x[0] = 1e153 * (1 + 1e-3 * rng.standard_normal(n))
+    x[0, 0] = 0.0
+    x[1:] = 3e-3 * rng.standard_normal((2, n))
+    lo_sd, hi_sd = np.full(3, 2e-4), np.full(3, 1e300)
+    with np.errstate(over="ignore", invalid="ignore"):
+        got = fast._sd_within(x, w, lo_sd, hi_sd)
+    _, sd = fast._exact_window_stats(x, w, np.arange(n - w + 1))
+    want = ((sd <= hi_sd) & (sd >= lo_sd)).all(axis=1)
+    assert want.sum() > 50
+    np.testing.assert_array_equal(got, want)
+    cfg = {"rate_hz": 20.0, "clip_abs_g": False, "norm_tol_raw_g": 1e300, "sd_max_g": 1e300}
+    data = (np.arange(n) / 20.0, x.T.copy(), np.full(n, 25.0), np.zeros((n, 0)))
+    with np.errstate(over="ignore", invalid="ignore"):
+        ref_out = run(ref, cfg, data)
+        assert len(ref_out) == 1
+        assert_identical(run(fast, cfg, data), ref_out)
+        assert_identical(run(fast, cfg, data, cuts=list(range(7, n, 7))), ref_out)

@@ -108,3 +108,29 @@ def test_a_full_store_and_a_cap_on_new_cells_change_nothing_either():
                     break
             assert (got["consumed"], got["new_cells"]) == (taken, new)
             np.testing.assert_array_equal(np.sort(capped.key), np.sort(single.key))
+
+
+def test_a_window_whose_statistics_would_overflow_is_not_stored_and_spoils_no_other():
+    """A still window with a mean or sd past ~1e154 g (a corrupt packet) is not a pose: it
+    is left out, as a NaN one is, and the other windows of its batch are gated as they are
+    without it (stored, its inf made its cell's sums NaN, and the gate's running sums of
+    every window sorted after it in the batch, which then went ungated)."""
+    z = np.array([0.0, 0.0, 1.0])
+
+    def store():
+        s = PoseStore.empty()
+        s.add(np.tile(z, (5, 1)) * (1 + 1e-4 * np.arange(5))[:, None], np.full((5, 3), 3e-3), np.full(5, 200),
+              np.arange(5.0), np.full(5, 25.0))
+        return s
+
+    s = store()
+    out = s.add(np.array([z * 1.1]), np.array([[1e200] * 3]), np.array([200]), np.array([6.0]), np.array([25.0]))
+    assert out["added"] == 0 and out["consumed"] == 1 and np.isfinite(s.stats).all()
+    for bad in ([1e200, 0.0, 0.0], [0.0, 0.0, np.nan]):
+        a, b = store(), store()
+        mean = np.array([z * 1.1, [1.0, 0, 0], bad])
+        args = (np.full((3, 3), 3e-3), np.full(3, 200), np.array([6.0, 7, 8]), np.full(3, 25.0))
+        got = a.add(mean, *args)
+        want = b.add(mean[:2], *(x[:2] for x in args))
+        assert (got["added"], got["gated"], got["new_cells"]) == (want["added"], want["gated"], want["new_cells"]) == (2, 1, 2)
+        np.testing.assert_array_equal(a.stats, b.stats)
