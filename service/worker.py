@@ -691,7 +691,7 @@ class RefitWorker:
             t = batch.t_s + offset
             feed["clock_resets"] = int(feed.get("clock_resets", 0)) + 1
             kept = [r for r in feed.get("reset_offsets", []) if int(r[0]) != int(seq)]
-            feed["reset_offsets"] = kept[-(RESET_OFFSETS_KEPT - 1):] + [[int(seq), float(offset)]]
+            feed["reset_offsets"] = (kept + [[int(seq), float(offset)]])[-RESET_OFFSETS_KEPT:]
             if count:
                 self.metrics.inc("selfcal_clock_resets_total")
         feed["t_offset_s"] = offset
