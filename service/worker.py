@@ -45,8 +45,9 @@ from selfcal_service.storage import (
 log = logging.getLogger("selfcal.service.worker")
 
 
-#: Clock resets whose offsets a device's feed state keeps (for replays after a checkpoint).
-RESET_OFFSETS_KEPT = 32
+#: Clock resets after its checkpoint whose offsets a device's feed state keeps, at most
+#: (for replays after the checkpoint; the ones at or before it are dropped).
+RESET_OFFSETS_KEPT = 256
 
 
 class Calibrator(Protocol):
@@ -672,13 +673,14 @@ class RefitWorker:
 
     # ------------------------------------------------------------ feeding
     def _prepare(self, batch: Batch, seq: int, feed: dict[str, Any], count: bool = True,
-                 fed_offsets: dict[int, float] | None = None) -> np.ndarray:
+                 fed_offsets: dict[int, float] | None = None, checkpoint_seq: int | None = None) -> np.ndarray:
         """Device time -> fed time: a clock going backwards (reboot) adds a gap, never a reversal.
 
-        The offset a reset gives is kept in the feed state (``reset_offsets``, the last
-        ``RESET_OFFSETS_KEPT``): a replay after a checkpoint (``fed_offsets``, from the
-        device's latest feed state) feeds the batch at the time it was first fed, even if
-        ``time_reset_gap_s`` changed since."""
+        The offset a reset gives is kept in the feed state (``reset_offsets``: the resets
+        after the device's checkpoint ``checkpoint_seq``, at most ``RESET_OFFSETS_KEPT``): a
+        replay after the checkpoint (``fed_offsets``, from the device's latest feed state)
+        feeds the batch at the time it was first fed, even if ``time_reset_gap_s`` changed
+        since."""
         offset = float(feed.get("t_offset_s", 0.0))
         last = feed.get("last_t_s")
         t = batch.t_s + offset
@@ -690,7 +692,8 @@ class RefitWorker:
                 offset += (last - t[0]) + self.time_reset_gap_s
             t = batch.t_s + offset
             feed["clock_resets"] = int(feed.get("clock_resets", 0)) + 1
-            kept = [r for r in feed.get("reset_offsets", []) if int(r[0]) != int(seq)]
+            kept = [r for r in feed.get("reset_offsets", [])
+                    if int(r[0]) != int(seq) and (checkpoint_seq is None or int(r[0]) > checkpoint_seq)]
             feed["reset_offsets"] = (kept + [[int(seq), float(offset)]])[-RESET_OFFSETS_KEPT:]
             if count:
                 self.metrics.inc("selfcal_clock_resets_total")
@@ -733,10 +736,12 @@ class RefitWorker:
         fed_offsets = None
         if replay and rec is not None:  # the offsets the resets gave when these batches were first fed
             fed_offsets = {int(q): float(o) for q, o in (rec.feed_state or {}).get("reset_offsets", [])}
+        checkpoint_seq = rec.checkpoint.seq if rec is not None and rec.checkpoint is not None else None
         for seq, batch in batches:
             if run and shape(run[-1][1]) != shape(batch):
                 flush()
-            t = self._prepare(batch, seq, feed, count=not replay, fed_offsets=fed_offsets)
+            t = self._prepare(batch, seq, feed, count=not replay, fed_offsets=fed_offsets,
+                              checkpoint_seq=checkpoint_seq)
             self._account(batch, t, seq, feed)
             run.append((t, batch))
             samples += batch.n

@@ -464,3 +464,39 @@ def test_a_clock_reset_is_replayed_at_the_time_it_was_first_fed(tmp_path, stream
         assert got.to_json() == want
     finally:
         store.close()
+
+
+def test_many_clock_resets_after_the_checkpoint_are_replayed_at_their_first_times(tmp_path, stream):
+    """A device whose clock restarts at every batch (40 resets, no checkpoint yet): every
+    reset's offset is kept, and a restore under another ``time_reset_gap_s`` still gives
+    the calibrator that first fed them (a review found the first 8 of 40 refed at other
+    times when only the last 32 were kept)."""
+    from selfcal_service.metrics import Metrics
+    from selfcal_service.settings import load_settings
+    from selfcal_service.worker import CalibratorFactory, RefitWorker
+
+    cfg, batches = stream
+    restarted = [(k, t - (t[0] - 5.0) if k else t, acc, temp, pres) for k, t, acc, temp, pres in batches[:41]]
+
+    def worker(store, gap_s):
+        factory = CalibratorFactory(load_settings({}, environ={}).calibrator,
+                                    config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
+        return RefitWorker(store, factory, Metrics(), max_batches_per_cycle=1, checkpoint_samples=10**9,
+                           time_reset_gap_s=gap_s)
+
+    store = _open(backend_db(tmp_path / "resets.db"))
+    try:
+        _ingest(store, restarted)
+        first = worker(store, 60.0)
+        while first.process("ins"):
+            pass
+        rec = store.load_device("ins", with_state=False)
+        assert rec.processed_seq == 40 and rec.checkpoint is None
+        assert first.metrics.get("selfcal_clock_resets_total") == 40
+        assert [r[0] for r in rec.feed_state["reset_offsets"]] == list(range(1, 41))
+        want = first._calibrator(rec).calibration()
+        for gap_s in (600.0, 6.0):
+            got = worker(store, gap_s)._calibrator(rec).calibration()
+            assert got["version"] == want["version"] and got["params"] == want["params"]
+    finally:
+        store.close()
