@@ -151,3 +151,38 @@ def test_the_row_order_round_trips_and_a_corrupt_one_is_refused():
     broken["state"]["store"]["from_base"] = "not base64 zlib"
     with pytest.raises(InputError):
         apply_patch(base_text, json.dumps(broken))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fields_equal_to_the_bases_are_named_not_repeated(seed):
+    """Format 2: a field whose JSON is the base's (the configuration, always) is named in
+    ``same`` and holds null; a field that changed is written. Applied, the state is the
+    full one byte for byte; a format-1 patch (every field written) still applies; a
+    patch naming a field the base lacks is refused."""
+    cal, base_text, base = _fed_past_a_base(seed)
+    assert {"config", "detector"} <= set(base.fields)
+    full = cal.to_json()
+    patch = json.loads(cal.checkpoint_patch(base))
+    assert patch["format_version"] == 2 and "config" in patch["same"]
+    was, now = json.loads(base_text), json.loads(full)
+    unchanged = {k for k in base.fields if json.dumps(was[k]) == json.dumps(now[k])}
+    assert set(patch["same"]) == unchanged and unchanged != set(base.fields)  # something changed
+    assert all(patch["state"][k] is None for k in patch["same"])
+    assert all(patch["state"][k] == now[k] for k in set(base.fields) - unchanged)
+    state, again = apply_patch(base_text, json.dumps(patch))
+    assert json.dumps(state, allow_nan=True, separators=(",", ":")) == full
+    assert again.fields == base.fields
+
+    v1 = dict(patch, format_version=1, state=dict(patch["state"], **{k: json.loads(full)[k] for k in patch["same"]}))
+    del v1["same"]
+    assert json.dumps(apply_patch(base_text, json.dumps(v1))[0], allow_nan=True, separators=(",", ":")) == full
+
+    # a patch naming a field the base or its state lacks, the store, or not as a list: refused
+    for bad in (dict(patch, same=patch["same"] + ["no_such_field"]), dict(patch, same="config"),
+                dict(patch, same=["store"])):
+        with pytest.raises(InputError):
+            apply_patch(base_text, json.dumps(bad))
+
+    # against a base of the state itself, every field is named
+    again_patch = json.loads(cal.checkpoint_patch(cal.checkpoint_base(full)))
+    assert set(again_patch["same"]) == set(cal.checkpoint_base(full).fields) >= {"config"}
