@@ -417,8 +417,11 @@ class RefitWorker:
         """The device's calibrator as of ``rec.processed_seq``: its checkpoint (or a fresh
         one), then the batches fed after the checkpoint fed again in seq order. The
         calibrator gives the same state however its samples are split into calls
-        (tests/test_calibrator.py), so the replay reproduces the state the last cycle
-        had; its refit events were published then and are dropped now."""
+        (tests/test_calibrator.py) up to rounding: the pose store's sums can differ in
+        their last bits when the replay's calls are not the first feed's (after a refused
+        batch, which the first feed isolated), so the replay reproduces the state the
+        last cycle had, and its calibrations to ~1e-9; its refit events were published
+        then and are dropped now."""
         self._forget(rec.device_id)
         full = self.store.load_device(rec.device_id, with_state=True)
         if full is None or full.processed_seq != rec.processed_seq or full.state_rev != rec.state_rev:
