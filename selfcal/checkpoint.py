@@ -168,10 +168,10 @@ def apply_patch(base_text: str, patch_text: str, encode: bool = True) -> tuple[d
     crc = zlib.crc32(raw)  # (once: the base is up to megabytes)
     try:
         patch = json.loads(patch_text)
-    except ValueError as exc:
-        raise InputError(f"checkpoint patch: not JSON ({exc})") from None
+    except (ValueError, RecursionError) as exc:
+        raise InputError(f"checkpoint patch: not JSON ({type(exc).__name__}: {exc})") from None
     if not isinstance(patch, dict) or patch.get("format") != PATCH_FORMAT \
-            or patch.get("format_version") not in (1, PATCH_FORMAT_VERSION):
+            or type(patch.get("format_version")) is not int or patch["format_version"] not in (1, PATCH_FORMAT_VERSION):
         raise InputError("checkpoint patch: unknown format or version")
     if patch.get("base_crc32") != crc or patch.get("base_bytes") != len(raw):
         raise InputError(f"checkpoint patch: made against another base (CRC-32 {patch.get('base_crc32')}, "
@@ -179,12 +179,13 @@ def apply_patch(base_text: str, patch_text: str, encode: bool = True) -> tuple[d
     try:
         base_state = json.loads(base_text)
         rows = _store_rows(base_state["store"])
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, OverflowError, RecursionError) as exc:
         raise InputError(f"checkpoint patch: its base has no pose store rows ({type(exc).__name__}: {exc})") from None
     base = CheckpointBase(crc, len(raw), row_digests(*rows), field_digests(base_state))
     same = patch.get("same", [])
-    if not isinstance(same, list) or not isinstance(patch.get("state"), dict) \
-            or any(k == "store" or k not in patch["state"] or k not in base_state for k in same):
+    if not isinstance(same, list) or not isinstance(patch.get("state"), dict) or not isinstance(base_state, dict) \
+            or any(not isinstance(k, str) or k == "store" or k not in patch["state"] or k not in base_state
+                   for k in same):
         raise InputError("checkpoint patch: its fields named as the base's are not fields of both")
     state = dict(patch["state"])
     for k in same:  # format 2: the base's fields, in their places
@@ -193,7 +194,7 @@ def apply_patch(base_text: str, patch_text: str, encode: bool = True) -> tuple[d
         store_patch = dict(state["store"])
         from_base = _decode_order(store_patch.pop("from_base"))
         changed = _store_rows(store_patch)
-    except (ValueError, KeyError, TypeError, zlib.error) as exc:
+    except (ValueError, KeyError, TypeError, OverflowError, zlib.error) as exc:
         raise InputError(f"checkpoint patch: no pose store rows ({type(exc).__name__}: {exc})") from None
     new = from_base < 0
     if int(new.sum()) != len(changed[0]) or (len(from_base) and (from_base.max(initial=-1) >= len(rows[0])

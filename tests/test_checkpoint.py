@@ -179,7 +179,9 @@ def test_fields_equal_to_the_bases_are_named_not_repeated(seed):
 
     # a patch naming a field the base or its state lacks, the store, or not as a list: refused
     for bad in (dict(patch, same=patch["same"] + ["no_such_field"]), dict(patch, same="config"),
-                dict(patch, same=["store"])):
+                dict(patch, same=["store"]), dict(patch, same=[["config"]]), dict(patch, same=[3]),
+                dict(patch, format_version=True),
+                dict(patch, state=dict(patch["state"], store=dict(patch["state"]["store"], key=[2**70])))):
         with pytest.raises(InputError):
             apply_patch(base_text, json.dumps(bad))
 
