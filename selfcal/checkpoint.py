@@ -148,13 +148,17 @@ def make_patch(state: dict[str, Any], store, base: CheckpointBase) -> str:
     store_patch.update(key=store.key[new].tolist(), stats=_enc(store.stats[new]), t_first=_enc(store.t_first[new]),
                        t_last=_enc(store.t_last[new]),
                        from_base=_encode_order(from_base))
-    body = dict(state, store=store_patch)
-    same = [k for k, d in field_digests(state).items() if base.fields.get(k) == d]
+    # each field's JSON once: digested, then written (or null: the base's, its place kept so
+    # that the applied state has the same key order)
+    texts = {k: _json(v) for k, v in dict(state, store=store_patch).items()}
+    same = [k for k, text in texts.items()
+            if k != "store" and len(text) >= _SAME_MIN_BYTES and base.fields.get(k) == _digest(text)]
     for k in same:
-        body[k] = None  # the base's (its place kept: the applied state has the same key order)
-    out = {"format": PATCH_FORMAT, "format_version": PATCH_FORMAT_VERSION, "base_crc32": base.crc32,
-           "base_bytes": base.n_bytes, "same": same, "state": body}
-    return _json(out)
+        texts[k] = "null"
+    head = {"format": PATCH_FORMAT, "format_version": PATCH_FORMAT_VERSION, "base_crc32": base.crc32,
+            "base_bytes": base.n_bytes, "same": same}
+    body = ",".join(f"{_json(str(k))}:{text}" for k, text in texts.items())
+    return f"{_json(head)[:-1]},\"state\":{{{body}}}}}"
 
 
 def apply_patch(base_text: str, patch_text: str, encode: bool = True) -> tuple[dict[str, Any], CheckpointBase]:
