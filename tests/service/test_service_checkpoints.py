@@ -43,14 +43,15 @@ def _open(db: str):
     return store
 
 
-def _worker(store, cfg, checkpoint_samples: int):
+def _worker(store, cfg, checkpoint_samples: int, time_reset_gap_s: float = 60.0):
     from selfcal_service.metrics import Metrics
     from selfcal_service.settings import load_settings
     from selfcal_service.worker import CalibratorFactory, RefitWorker
 
     factory = CalibratorFactory(load_settings({}, environ={}).calibrator,
                                 config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
-    return RefitWorker(store, factory, Metrics(), max_batches_per_cycle=1, checkpoint_samples=checkpoint_samples)
+    return RefitWorker(store, factory, Metrics(), max_batches_per_cycle=1, checkpoint_samples=checkpoint_samples,
+                       time_reset_gap_s=time_reset_gap_s)
 
 
 def _ingest(store, batches, device: str = "ins") -> None:
@@ -423,33 +424,29 @@ def test_a_checkpoint_patch_is_written_only_onto_its_base(tmp_path, stream):
         store.close()
 
 
+def _fed_across_resets(db_path, cfg, batches, checkpoint_samples: int):
+    """A store with ``batches`` fed by a worker with ``time_reset_gap_s`` 60: (store, the
+    worker, the device's record)."""
+    store = _open(backend_db(db_path))
+    _ingest(store, batches)
+    first = _worker(store, cfg, checkpoint_samples, time_reset_gap_s=60.0)
+    while first.process("ins"):
+        pass
+    return store, first, store.load_device("ins", with_state=False)
+
+
 def test_a_clock_reset_is_replayed_at_the_time_it_was_first_fed(tmp_path, stream):
     """A device clock that goes back (a reboot) is fed after a gap, never backwards; a
     worker that restores the device from a checkpoint before the reset feeds the batches
     at the times they were first fed, even with another ``time_reset_gap_s``: the same
     calibrator as the worker that fed them."""
-    from selfcal_service.metrics import Metrics
-    from selfcal_service.settings import load_settings
-    from selfcal_service.worker import CalibratorFactory, RefitWorker
-
     cfg, batches = stream
     reboot = 6  # the insole restarts before batch 6: its clock begins again at 5 s
     shift = batches[reboot][1][0] - 5.0
     rebooted = [(k, t - (shift if k >= reboot else 0.0), acc, temp, pres) for k, t, acc, temp, pres in batches[:9]]
 
-    def worker(store, gap_s):
-        factory = CalibratorFactory(load_settings({}, environ={}).calibrator,
-                                    config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
-        return RefitWorker(store, factory, Metrics(), max_batches_per_cycle=1, checkpoint_samples=CKPT,
-                           time_reset_gap_s=gap_s)
-
-    store = _open(backend_db(tmp_path / "reset.db"))
+    store, first, rec = _fed_across_resets(tmp_path / "reset.db", cfg, rebooted, CKPT)
     try:
-        _ingest(store, rebooted)
-        first = worker(store, 60.0)
-        while first.process("ins"):
-            pass
-        rec = store.load_device("ins", with_state=False)
         assert rec.processed_seq == 8 and rec.checkpoint is not None and rec.checkpoint.seq < reboot
         assert first.metrics.get("selfcal_clock_resets_total") == 1
         last_before = batches[reboot - 1][1][-1]
@@ -458,7 +455,7 @@ def test_a_clock_reset_is_replayed_at_the_time_it_was_first_fed(tmp_path, stream
         assert rec.feed_state["reset_offsets"] == [[reboot, offset]]
         want = first._calibrator(rec).to_json()
 
-        second = worker(store, 600.0)  # the setting changed since
+        second = _worker(store, cfg, CKPT, time_reset_gap_s=600.0)  # the setting changed since
         got = second._calibrator(rec)
         assert second.replays == 1
         assert got.to_json() == want
@@ -471,32 +468,17 @@ def test_many_clock_resets_after_the_checkpoint_are_replayed_at_their_first_time
     reset's offset is kept, and a restore under another ``time_reset_gap_s`` still gives
     the calibrator that first fed them (a review found the first 8 of 40 refed at other
     times when only the last 32 were kept)."""
-    from selfcal_service.metrics import Metrics
-    from selfcal_service.settings import load_settings
-    from selfcal_service.worker import CalibratorFactory, RefitWorker
-
     cfg, batches = stream
     restarted = [(k, t - (t[0] - 5.0) if k else t, acc, temp, pres) for k, t, acc, temp, pres in batches[:41]]
 
-    def worker(store, gap_s):
-        factory = CalibratorFactory(load_settings({}, environ={}).calibrator,
-                                    config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
-        return RefitWorker(store, factory, Metrics(), max_batches_per_cycle=1, checkpoint_samples=10**9,
-                           time_reset_gap_s=gap_s)
-
-    store = _open(backend_db(tmp_path / "resets.db"))
+    store, first, rec = _fed_across_resets(tmp_path / "resets.db", cfg, restarted, 10**9)
     try:
-        _ingest(store, restarted)
-        first = worker(store, 60.0)
-        while first.process("ins"):
-            pass
-        rec = store.load_device("ins", with_state=False)
         assert rec.processed_seq == 40 and rec.checkpoint is None
         assert first.metrics.get("selfcal_clock_resets_total") == 40
         assert [r[0] for r in rec.feed_state["reset_offsets"]] == list(range(1, 41))
         want = first._calibrator(rec).calibration()
         for gap_s in (600.0, 6.0):
-            got = worker(store, gap_s)._calibrator(rec).calibration()
+            got = _worker(store, cfg, 10**9, time_reset_gap_s=gap_s)._calibrator(rec).calibration()
             assert got["version"] == want["version"] and got["params"] == want["params"]
     finally:
         store.close()
