@@ -42,7 +42,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.special import chdtri as _chi2_isf  # chi2.ppf(q, k) = chdtri(k, 1 - q); scipy.stats costs 0.5 s to import
 
-from selfcal.checkpoint import CheckpointBase, apply_patch, make_patch
+from selfcal.checkpoint import CheckpointBase, apply_patch, field_digests, make_patch
 from selfcal.checkpoint import base_of as checkpoint_base_of
 from selfcal.config import section
 from selfcal.errors import InputError
@@ -1003,7 +1003,7 @@ class OnlineCalibrator:
     def checkpoint_base(self, text: str) -> CheckpointBase:
         """What a checkpoint writer keeps of the full state ``text`` (this calibrator's
         :meth:`to_json`, just written as a base) to patch it later."""
-        return checkpoint_base_of(text, self.store)
+        return checkpoint_base_of(text, self.store, field_digests(self.state(store_rows=False)))
 
     def checkpoint_patch(self, base: CheckpointBase) -> str:
         """The state as a patch against ``base`` (text; usually a few % of the full state)."""
@@ -1015,10 +1015,11 @@ class OnlineCalibrator:
         the base's :class:`CheckpointBase` for the next patches."""
         if patch_text is None:
             d = json.loads(base_text)
+            fields = field_digests(d)  # as stored (before from_json reads d)
             obj = cls.from_json(d)
             # a patch is made against the rows of the text; a state of format 1 has none
             # (its poses are re-filed on load): its next checkpoint is in full
-            return obj, (checkpoint_base_of(base_text, obj.store)
+            return obj, (checkpoint_base_of(base_text, obj.store, fields)
                          if d.get("format_version") == STATE_FORMAT_VERSION else None)
         state, base = apply_patch(base_text, patch_text, encode=False)
         return cls.from_json(state), base
