@@ -60,6 +60,10 @@ _STEMP = 18  # sum of temperatures (windows with one)
 _NTEMP = 19  # windows with a temperature
 N_STATS = 20
 _UU_IDX = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_UU_ROW = np.array([i for i, _ in _UU_IDX])
+_UU_COL = np.array([j for _, j in _UU_IDX])
+# the entry of _UU_IDX that each element of a symmetric 3x3 (row-major) holds
+_UU_FULL = np.array([_UU_IDX.index((min(i, j), max(i, j))) for i in range(3) for j in range(3)])
 
 _NO_TEMP_BAND = 1023
 
@@ -170,11 +174,13 @@ class PoseStore:
     barriers_s: list[float] = field(default_factory=list)
     # key -> row lookup: (the keys sorted, their rows), or None until next asked
     _index: tuple | None = field(default=None, repr=False, compare=False)
-    # the per-cell derived values of one ``stats`` array, computed once per refit instead of
-    # once per use (eigh of every cell's 3x3 scatter): (the array itself, its in-place edit
-    # count, the result). Holding the array keeps its id from being reused.
+    # the per-cell derived values of one ``stats`` array (eigh of every cell's 3x3 scatter),
+    # kept between refits: (the array itself, the result). Holding the array keeps its id
+    # from being reused. Rows changed in place or appended since are in ``_dirty`` (arrays
+    # of row indices): only those are computed again, each row's values depending on its
+    # own statistics only.
     _derived_cache: tuple | None = field(default=None, repr=False, compare=False)
-    _edits: int = field(default=0, repr=False, compare=False)
+    _dirty: list = field(default_factory=list, repr=False, compare=False)
 
     @classmethod
     def empty(cls, config: PoseConfig | None = None) -> "PoseStore":
@@ -214,12 +220,45 @@ class PoseStore:
 
     # ------------------------------------------------------------------ cell views
     def _derived(self, rows: np.ndarray | slice | None = None):
-        """(mean direction (k,3), mean d (k,), per-window noise variance (k,), scatter dof (k,))."""
+        """(mean direction (k,3), mean d (k,), per-window noise variance (k,), scatter dof (k,)).
+
+        Kept from the last call: the rows changed since (``_dirty``) are computed again,
+        the others reused, so a refit after a few adds costs a few rows, not the store
+        (the same values: each row's come from its own statistics, by the same operations)."""
         cache = self._derived_cache
-        if cache is None or cache[0] is not self.stats or cache[1] != self._edits:
-            cache = self._derived_cache = (self.stats, self._edits, self._derived_from(self.stats))
-        full = cache[2]
+        if cache is None or cache[0] is not self.stats:
+            full = self._derived_from(self.stats)
+        elif self._dirty:
+            changed = np.unique(np.concatenate(self._dirty))
+            part = self._derived_from(self.stats[changed])
+            full = []
+            for old, new in zip(cache[1], part):
+                out = np.empty((len(self),) + old.shape[1:], dtype=old.dtype)
+                out[: len(old)] = old  # appended rows are all in `changed`
+                out[changed] = new
+                full.append(out)
+            full = tuple(full)
+        else:
+            full = cache[1]
+        self._derived_cache = (self.stats, full)
+        self._dirty = []
         return full if rows is None else tuple(x[rows] for x in full)
+
+    def _changed(self, rows: np.ndarray, before: np.ndarray | None = None) -> None:
+        """Rows of ``stats`` changed in place, or (``before``: the array ``stats`` replaced
+        by a longer copy of it) appended: the kept derived values follow."""
+        cache = self._derived_cache
+        if cache is None or cache[0] is not (self.stats if before is None else before):
+            self._derived_cache, self._dirty = None, []  # not this array's: computed afresh
+            return
+        self._derived_cache = (self.stats, cache[1])
+        self._dirty.append(np.asarray(rows, dtype=np.int64))
+        if len(self._dirty) > 256:  # many adds between refits: one array, or nothing kept
+            changed = np.unique(np.concatenate(self._dirty))
+            if 2 * changed.size > len(self):
+                self._derived_cache, self._dirty = None, []
+            else:
+                self._dirty = [changed]
 
     def _derived_from(self, s: np.ndarray, direction: bool = True):
         """:meth:`_derived` of a statistics table ``s`` (k, N_STATS); ``direction=False``
@@ -228,9 +267,9 @@ class PoseStore:
         su = s[:, _SU]
         ubar = su / nw[:, None]
         dbar = s[:, _SD] / nw
-        cuu = np.empty((len(s), 3, 3))
-        for c, (i, j) in enumerate(_UU_IDX):
-            cuu[:, i, j] = cuu[:, j, i] = s[:, _SUU.start + c] / nw - ubar[:, i] * ubar[:, j]
+        # the 6 distinct entries of each cell's direction scatter, then the symmetric 3x3
+        uu = s[:, _SUU] / nw[:, None] - ubar[:, _UU_ROW] * ubar[:, _UU_COL]
+        cuu = uu[:, _UU_FULL].reshape(-1, 3, 3)
         cdu = s[:, _SDU] / nw[:, None] - dbar[:, None] * ubar
         cdd = s[:, _SDD] / nw - dbar**2
         # regression of the norm on the direction (the raw sensor's anisotropy within a cell
@@ -379,13 +418,14 @@ class PoseStore:
         if exist.any():
             t = target[exist]
             self.stats[t] += sums[exist]
-            self._edits += 1  # an in-place change: the derived values are stale
+            self._changed(t)  # an in-place change: those rows' derived values are stale
             self.t_first[t] = np.minimum(self.t_first[t], tmin[exist])
             self.t_last[t] = np.maximum(self.t_last[t], tmax[exist])
         new = ~exist
         if new.any():
             self.key = np.concatenate([self.key, ukeys[new]])
-            self.stats = np.vstack([self.stats, sums[new]])
+            stored, self.stats = self.stats, np.vstack([self.stats, sums[new]])
+            self._changed(np.arange(len(stored), len(self)), before=stored)
             self.t_first = np.concatenate([self.t_first, tmin[new]])
             self.t_last = np.concatenate([self.t_last, tmax[new]])
             self._index_stale()

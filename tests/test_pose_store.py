@@ -134,3 +134,47 @@ def test_a_window_whose_statistics_would_overflow_is_not_stored_and_spoils_no_ot
         want = b.add(mean[:2], *(x[:2] for x in args))
         assert (got["added"], got["gated"], got["new_cells"]) == (want["added"], want["gated"], want["new_cells"]) == (2, 1, 2)
         np.testing.assert_array_equal(a.stats, b.stats)
+
+
+def _same_bits(a, b) -> bool:
+    return a.shape == b.shape and np.array_equal(a, b, equal_nan=True) and np.array_equal(np.signbit(a), np.signbit(b))
+
+
+def test_the_kept_derived_values_are_those_of_the_store_and_only_changed_rows_are_computed():
+    """The per-cell values a refit reads (mean direction, mean norm, window noise, dof) are
+    kept between refits and only the rows an add changed or appended are computed again:
+    after any sequence of adds (cells updated, new cells, the bound's merges and drops)
+    they equal, bit for bit, those computed from the whole store."""
+    from selfcal.poses import PoseConfig
+
+    for seed, max_cells in ((21, 60), (22, 400), (23, 5000)):
+        rng = np.random.default_rng(seed)
+        mean, sd, n, t, temp = windows(rng, 1500)
+        store = PoseStore.empty(PoseConfig(max_cells=max_cells))
+        cuts = np.sort(rng.choice(np.arange(1, len(t)), 300, replace=False))
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(t)]):
+            store.add(mean[a:b], sd[a:b], n[a:b], t[a:b], temp[a:b])
+            if rng.random() < 0.4:
+                kept = store._derived()
+                whole = store._derived_from(store.stats)
+                assert all(_same_bits(x, y) for x, y in zip(kept, whole))
+
+    # only the rows changed since are computed: one window into an existing cell, one row
+    store = PoseStore.empty(PoseConfig())
+    mean, sd, n, t, temp = windows(np.random.default_rng(24), 400)
+    store.add(mean, sd, n, t, temp)
+    store._derived()
+    rows_computed = []
+    compute = store._derived_from
+
+    def counting(s, direction=True):
+        rows_computed.append(len(s))
+        return compute(s, direction)
+
+    store._derived_from = counting
+    i = int(np.flatnonzero(store._rows_of(store._keys(mean / np.linalg.norm(mean, axis=1, keepdims=True),
+                                                         temp, t)) >= 0)[-1])
+    store.add(mean[i:i + 1], sd[i:i + 1], n[i:i + 1], t[i:i + 1] + 1.0, temp[i:i + 1])
+    rows_computed.clear()
+    store._derived()
+    assert rows_computed == [1]
