@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import heapq
 import importlib
 import logging
 import math
@@ -214,8 +215,13 @@ class RefitWorker:
         self._locks: dict[str, threading.Lock] = {}
         self._locks_guard = threading.Lock()
         self._stop = threading.Event()
-        self._held: set[str] = set()  # devices waiting out the reorder window
+        self._held: set[str] = set()  # devices waiting out the reorder window or the cycle interval
         self._held_lock = threading.Lock()
+        # when each held device is looked at again: one thread for them all (a timer thread
+        # per device would be a thread per insole with min_cycle_interval_s)
+        self._wakes: list[tuple[float, str]] = []  # (monotonic s, device), a heap
+        self._wake_cond = threading.Condition(self._held_lock)
+        self._waker: threading.Thread | None = None
         self.reorder_window_s = reorder_window_s
         # a device fed everything it had is fed again at most this often (monotonic s of its last cycle)
         self.min_cycle_interval_s = min_cycle_interval_s
@@ -263,6 +269,10 @@ class RefitWorker:
         self._stop.set()
         with self._lease_cond:
             self._lease_cond.notify_all()
+        with self._wake_cond:
+            self._wake_cond.notify_all()
+        if self._waker is not None:
+            self._waker.join(timeout=30)
         for shard in self._shards:
             with shard.cond:
                 shard.cond.notify_all()
@@ -658,21 +668,36 @@ class RefitWorker:
         return more
 
     def _hold(self, device_id: str, delay_s: float) -> None:
-        """Look at a device again after ``delay_s`` (batches held for the reorder window)."""
-        with self._held_lock:
-            if device_id in self._held:
+        """Look at a device again after ``delay_s`` (batches held for the reorder window,
+        or a device fed less than ``min_cycle_interval_s`` ago)."""
+        with self._wake_cond:
+            if device_id in self._held or self._stop.is_set():
                 return
             self._held.add(device_id)
+            heapq.heappush(self._wakes, (time.monotonic() + delay_s, device_id))
+            if self._waker is None:
+                self._waker = threading.Thread(target=self._wake_loop, name="selfcal-holds", daemon=True)
+                self._waker.start()
+            elif self._wakes[0][1] == device_id:  # sooner than the waker's current wait
+                self._wake_cond.notify()
 
-        def wake() -> None:
-            with self._held_lock:
-                self._held.discard(device_id)
-            if not self._stop.is_set():
+    def _wake_loop(self) -> None:
+        """Enqueue each held device when its time comes (the thread :meth:`_hold` starts)."""
+        while True:
+            with self._wake_cond:
+                while not self._stop.is_set():
+                    now = time.monotonic()
+                    if self._wakes and self._wakes[0][0] <= now:
+                        break
+                    self._wake_cond.wait(timeout=min(self._wakes[0][0] - now, 1.0) if self._wakes else 1.0)
+                if self._stop.is_set():
+                    return
+                due = []
+                while self._wakes and self._wakes[0][0] <= now:
+                    due.append(heapq.heappop(self._wakes)[1])
+                self._held.difference_update(due)
+            for device_id in due:
                 self._enqueue(device_id)
-
-        timer = threading.Timer(delay_s, wake)
-        timer.daemon = True
-        timer.start()
 
     # ------------------------------------------------------------ feeding
     def _prepare(self, batch: Batch, seq: int, feed: dict[str, Any], count: bool = True,

@@ -232,6 +232,36 @@ def test_plan_a_batch_the_calibrator_refused_leaves_no_gap():
     assert [r.seq for r in take] == [8] and not held and not late
 
 
+def test_held_devices_come_back_in_time_order_from_one_thread():
+    """Devices held (reorder window, min_cycle_interval_s) are enqueued when their time
+    comes, soonest first, by one thread for them all (not a timer thread per device: with
+    a cycle interval every insole of a fleet is held between its cycles); a device is held
+    once at a time, and nothing comes back after stop()."""
+    import threading
+    import time
+
+    w = _planner(10.0)
+    came_back: list[str] = []
+    w._enqueue = came_back.append  # what the waker does with a device whose time came
+    before = threading.active_count()
+    for i, delay in enumerate([0.6, 0.2, 0.4] * 200):
+        w._hold(f"d{i}", delay)
+    w._hold("d1", 0.0)  # held already: not shortened, not doubled
+    assert threading.active_count() == before + 1 and len(w._held) == 600
+    time.sleep(0.3)
+    assert sorted(came_back) == sorted(f"d{i}" for i in range(1, 600, 3))  # the 0.2-s ones only
+    deadline = time.monotonic() + 5.0
+    while len(came_back) < 600 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    delays = {f"d{i}": d for i, d in enumerate([0.6, 0.2, 0.4] * 200)}
+    assert len(came_back) == 600 and [delays[d] for d in came_back] == sorted(delays[d] for d in came_back)
+    assert not w._held and w.idle()
+    w._hold("late", 0.2)
+    w.stop()
+    time.sleep(0.4)
+    assert "late" not in came_back and not w._waker.is_alive()
+
+
 @pytest.mark.parametrize("parser", ["h11", "httptools"])
 def test_protocol_sets_tcp_nodelay_even_on_a_socket_without_proto(parser):
     """uvicorn's worker processes get the listening socket back with proto 0, and asyncio
