@@ -181,6 +181,7 @@ class PoseStore:
     # own statistics only.
     _derived_cache: tuple | None = field(default=None, repr=False, compare=False)
     _dirty: list = field(default_factory=list, repr=False, compare=False)
+    _dirty_rows: int = field(default=0, repr=False, compare=False)  # their total length
 
     @classmethod
     def empty(cls, config: PoseConfig | None = None) -> "PoseStore":
@@ -241,7 +242,7 @@ class PoseStore:
         else:
             full = cache[1]
         self._derived_cache = (self.stats, full)
-        self._dirty = []
+        self._dirty, self._dirty_rows = [], 0
         return full if rows is None else tuple(x[rows] for x in full)
 
     def _changed(self, rows: np.ndarray, before: np.ndarray | None = None) -> None:
@@ -249,16 +250,18 @@ class PoseStore:
         by a longer copy of it) appended: the kept derived values follow."""
         cache = self._derived_cache
         if cache is None or cache[0] is not (self.stats if before is None else before):
-            self._derived_cache, self._dirty = None, []  # not this array's: computed afresh
+            self._derived_cache, self._dirty, self._dirty_rows = None, [], 0  # not this array's: computed afresh
             return
         self._derived_cache = (self.stats, cache[1])
         self._dirty.append(np.asarray(rows, dtype=np.int64))
-        if len(self._dirty) > 256:  # many adds between refits: one array, or nothing kept
+        self._dirty_rows += self._dirty[-1].size
+        if len(self._dirty) > 256 or self._dirty_rows > len(self):
+            # many adds between refits: one array, or nothing kept (bounded by the store)
             changed = np.unique(np.concatenate(self._dirty))
             if 2 * changed.size > len(self):
-                self._derived_cache, self._dirty = None, []
+                self._derived_cache, self._dirty, self._dirty_rows = None, [], 0
             else:
-                self._dirty = [changed]
+                self._dirty, self._dirty_rows = [changed], changed.size
 
     def _derived_from(self, s: np.ndarray, direction: bool = True):
         """:meth:`_derived` of a statistics table ``s`` (k, N_STATS); ``direction=False``

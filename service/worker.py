@@ -675,7 +675,7 @@ class RefitWorker:
                 return
             self._held.add(device_id)
             heapq.heappush(self._wakes, (time.monotonic() + delay_s, device_id))
-            if self._waker is None:
+            if self._waker is None or not self._waker.is_alive():
                 self._waker = threading.Thread(target=self._wake_loop, name="selfcal-holds", daemon=True)
                 self._waker.start()
             elif self._wakes[0][1] == device_id:  # sooner than the waker's current wait
@@ -690,14 +690,19 @@ class RefitWorker:
                     if self._wakes and self._wakes[0][0] <= now:
                         break
                     self._wake_cond.wait(timeout=min(self._wakes[0][0] - now, 1.0) if self._wakes else 1.0)
-                if self._stop.is_set():
+                if self._stop.is_set():  # nothing comes back after stop: nothing is held
+                    self._held.clear()
+                    self._wakes.clear()
                     return
                 due = []
                 while self._wakes and self._wakes[0][0] <= now:
                     due.append(heapq.heappop(self._wakes)[1])
                 self._held.difference_update(due)
             for device_id in due:
-                self._enqueue(device_id)
+                try:
+                    self._enqueue(device_id)
+                except Exception:  # noqa: BLE001 - one device's failure must not stop every device's wakes
+                    log.exception("device %s: not enqueued after its hold", device_id)
 
     # ------------------------------------------------------------ feeding
     def _prepare(self, batch: Batch, seq: int, feed: dict[str, Any], count: bool = True,

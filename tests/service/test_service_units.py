@@ -244,22 +244,35 @@ def test_held_devices_come_back_in_time_order_from_one_thread():
     came_back: list[str] = []
     w._enqueue = came_back.append  # what the waker does with a device whose time came
     before = threading.active_count()
-    for i, delay in enumerate([0.6, 0.2, 0.4] * 200):
-        w._hold(f"d{i}", delay)
+    delays = {f"d{i}": d for i, d in enumerate([2.0, 0.2, 1.1] * 200)}
+    for device_id, delay in delays.items():
+        w._hold(device_id, delay)
     w._hold("d1", 0.0)  # held already: not shortened, not doubled
     assert threading.active_count() == before + 1 and len(w._held) == 600
-    time.sleep(0.3)
+    time.sleep(0.6)
     assert sorted(came_back) == sorted(f"d{i}" for i in range(1, 600, 3))  # the 0.2-s ones only
-    deadline = time.monotonic() + 5.0
+    deadline = time.monotonic() + 10.0
     while len(came_back) < 600 and time.monotonic() < deadline:
         time.sleep(0.05)
-    delays = {f"d{i}": d for i, d in enumerate([0.6, 0.2, 0.4] * 200)}
     assert len(came_back) == 600 and [delays[d] for d in came_back] == sorted(delays[d] for d in came_back)
     assert not w._held and w.idle()
+
+    def refuse(device_id):
+        raise RuntimeError("enqueue failed")
+
+    w._enqueue = refuse  # a device whose enqueue fails: the others still come back
+    w._hold("bad", 0.05)
+    time.sleep(0.3)
+    w._enqueue = came_back.append
+    w._hold("next", 0.05)
+    deadline = time.monotonic() + 5.0
+    while "next" not in came_back and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert "next" in came_back and not w._held
     w._hold("late", 0.2)
     w.stop()
     time.sleep(0.4)
-    assert "late" not in came_back and not w._waker.is_alive()
+    assert "late" not in came_back and not w._waker.is_alive() and not w._held and w.idle()
 
 
 @pytest.mark.parametrize("parser", ["h11", "httptools"])
