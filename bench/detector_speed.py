@@ -6,12 +6,14 @@ Streams (simulated wear, seed 1):
 * 100 Hz wrist-like: the simulator's motion at 100 Hz, 3 axes and temperature only
   (no pressure), 1 day.
 
-Each is fed to ``selfcal.detect.StaticDetector`` (today's, O(1) rolling statistics)
-and to ``tests/reference_detect.py`` (the O(W) implementation it replaced, kept as a
-reference) in chunks of 1, 400 and 50 000 samples and as one whole chunk, in the same
-run. Prints M samples/s for both, their ratio, whether the windows are identical (bit
-for bit), and the detector state's memory per device (largest over the stream, fed in
-5-s batches as the service does).
+Each is fed to ``selfcal.detect.StaticDetector`` (today's, O(1) rolling statistics),
+with its numpy code (``SELFCAL_NUMBA=0``) and with its numba kernels when numba is
+installed (``selfcal.detect_numba``), and to ``tests/reference_detect.py`` (the O(W)
+implementation it replaced, kept as a reference) in chunks of 1, 400 and 50 000 samples
+and as one whole chunk, in the same run. Prints M samples/s for each, the ratio of the
+faster to the reference, whether the windows are identical (bit for bit, all three), and
+the detector state's memory per device (largest over the stream, fed in 5-s batches as
+the service does).
 
     python bench/detector_speed.py            # chunk size 1 on the first 20 000 samples
     python bench/detector_speed.py --quick    # shorter streams
@@ -20,7 +22,9 @@ for bit), and the detector state's memory per device (largest over the stream, f
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -32,6 +36,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import reference_detect as reference  # noqa: E402
 from selfcal import detect as fast  # noqa: E402
+from selfcal import detect_numba  # noqa: E402
 from selfcal.sim.config import SimConfig  # noqa: E402
 from selfcal.sim.simulator import simulate_samples  # noqa: E402
 
@@ -57,6 +62,20 @@ def feed(module, rate_hz: float, data, chunk: int, limit: int | None = None):
         out.append(det.feed(t[lo:hi], a[lo:hi], tc[lo:hi], None if p is None else p[lo:hi]))
     out.append(det.flush())
     return time.perf_counter() - t0, n, module.StillWindows.concat(out)
+
+
+@contextlib.contextmanager
+def numba_switched(on: bool):
+    """The fast detector with (``on``) or without its numba kernels (``SELFCAL_NUMBA``)."""
+    before = os.environ.get("SELFCAL_NUMBA")
+    os.environ["SELFCAL_NUMBA"] = "1" if on else "0"
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("SELFCAL_NUMBA", None)
+        else:
+            os.environ["SELFCAL_NUMBA"] = before
 
 
 def identical(a, b) -> bool:
@@ -89,8 +108,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     cases = [("20 Hz insole (acc, temp, 4 pressure)", 20.0, 0.25 if args.quick else 1.0, True),
              ("100 Hz wrist-like (acc, temp)", 100.0, 1 / 24 if args.quick else 1.0, False)]
-    print("| stream | chunk | samples | reference M/s | fast M/s | ratio | windows | identical |")
-    print("|---|---|---|---|---|---|---|---|")
+    have_numba = detect_numba._kernels() is not None  # compiled (or loaded from numba's cache) before timing
+    print("numba: " + ("installed (the fast detector's kernels: selfcal.detect_numba)" if have_numba else
+                       "not installed (pip install 'selfcal[fast]'); the numba column is empty"))
+    print("| stream | chunk | samples | reference M/s | fast, numpy M/s | fast, numba M/s | ratio | windows | identical |")
+    print("|---|---|---|---|---|---|---|---|---|")
     mem = []
     for name, rate, days, pressure in cases:
         data = stream(rate, days, pressure)
@@ -98,9 +120,18 @@ def main(argv=None) -> int:
             limit = args.one_limit if chunk == 1 else None
             label = "whole" if chunk == len(data[0]) else f"{chunk:,}"
             tr, n, wr = feed(reference, rate, data, chunk, limit)
-            tf, _, wf = feed(fast, rate, data, chunk, limit)
-            print(f"| {name} | {label} | {n:,} | {n / tr / 1e6:.2f} | {n / tf / 1e6:.2f} | "
-                  f"{tr / tf:.1f}x | {len(wf)} | {'yes' if identical(wf, wr) else 'NO'} |", flush=True)
+            with numba_switched(False):
+                tp, _, wp = feed(fast, rate, data, chunk, limit)
+            same = identical(wp, wr)
+            tn = None
+            if have_numba:
+                with numba_switched(True):
+                    tn, _, wn = feed(fast, rate, data, chunk, limit)
+                same = same and identical(wn, wr)
+            best = min(tp, tn) if tn is not None else tp
+            numba_col = f"{n / tn / 1e6:.2f}" if tn is not None else "—"
+            print(f"| {name} | {label} | {n:,} | {n / tr / 1e6:.2f} | {n / tp / 1e6:.2f} | {numba_col} | "
+                  f"{tr / best:.1f}x | {len(wp)} | {'yes' if same else 'NO'} |", flush=True)
         mem.append((name, *state_bytes(rate, data)))
     print()
     for name, nb, js in mem:

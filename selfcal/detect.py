@@ -62,6 +62,7 @@ from pydantic import (
     model_validator,
 )
 
+from selfcal.detect_numba import IN, UNSURE, sd_codes_kernel, window_stats_kernel
 from selfcal.errors import InputError
 
 __all__ = [
@@ -403,7 +404,7 @@ def state_from_dict(d: dict[str, Any], config: DetectorConfig) -> DetectorState:
 # that every sum runs along contiguous memory.
 
 
-def _exact_window_stats(x: np.ndarray, w: int, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _exact_window_stats(x: np.ndarray, w: int, idx: np.ndarray, accelerate: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Two-pass mean and sample sd of the ``w``-sample windows that start at ``idx``.
 
     Parameters
@@ -414,6 +415,9 @@ def _exact_window_stats(x: np.ndarray, w: int, idx: np.ndarray) -> tuple[np.ndar
         Window length, samples (>= 2, <= n).
     idx : ndarray of int, shape (k,)
         First sample of each window (``0 <= idx <= n - w``).
+    accelerate : bool
+        Use the numba kernel (:mod:`selfcal.detect_numba`: numpy's sums in numpy's order)
+        when it is available; False forces the numpy code.
 
     Returns
     -------
@@ -432,6 +436,9 @@ def _exact_window_stats(x: np.ndarray, w: int, idx: np.ndarray) -> tuple[np.ndar
     sd = np.empty((k, c))
     if c == 0 or k == 0:
         return mean, sd
+    kernel = window_stats_kernel() if accelerate else None
+    if kernel is not None:
+        return kernel(np.asarray(x, dtype=np.float64), w, np.asarray(idx, dtype=np.int64))
     block = max(1, _BLOCK_VALUES // (w * c))
     offsets = np.arange(w)
     for lo in range(0, k, block):
@@ -477,7 +484,7 @@ def _sd_limits(p2: list[float], first: list[float], w: int, length: int, thresho
             np.array(out_lo)[:, None])
 
 
-def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray) -> np.ndarray:
+def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, accelerate: bool = True) -> np.ndarray:
     """Whether every channel's sample sd lies in ``[lo_sd, hi_sd]``, for every
     ``w``-sample sliding window, decided exactly as :func:`_exact_window_stats` decides.
 
@@ -489,6 +496,9 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray) -> n
         Window length, samples (>= 2, <= n).
     lo_sd, hi_sd : ndarray, shape (c,)
         Bounds per channel, same unit as ``x`` (``lo_sd <= 0``: no lower bound).
+    accelerate : bool
+        Use the numba kernel (:mod:`selfcal.detect_numba`) when it is available: the
+        same flags, in one pass; False forces the numpy code.
 
     Returns
     -------
@@ -519,6 +529,15 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray) -> n
         hs = hsd * hsd * (w - 1)
         ls = lsd * lsd * (w - 1) if lsd > 0 else -math.inf
         thresholds.append((hs / (1 + r), hs / (1 - r), ls / (1 - r), ls / (1 + r)))
+    kernel = sd_codes_kernel() if accelerate else None
+    if kernel is not None:  # the same verdicts, in one pass (selfcal.detect_numba)
+        codes = kernel(np.asarray(x, dtype=np.float64), w, np.array(thresholds), _ROLL_BLOCK, u)
+        ok = codes == IN
+        unsure = np.flatnonzero(codes == UNSURE)
+        if unsure.size:
+            _, sd = _exact_window_stats(x, w, unsure)
+            ok[unsure] = ((sd <= hi_sd) & (sd >= lo_sd)).all(axis=1)
+        return ok
     for lo in range(0, m, _ROLL_BLOCK):
         hi = min(m, lo + _ROLL_BLOCK)
         seg = x[:, lo : hi + w - 1]

@@ -1,0 +1,128 @@
+"""The still detector's optional numba kernels (selfcal.detect_numba) give the numpy
+code's results bit for bit: the sliding sd test's flags, the windows' two-pass means and
+sds (the sign of a zero included), and so every window of a stream, for every chunking.
+The numpy code itself is checked against the frozen reference in test_detect_reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from selfcal import detect, detect_numba
+from test_detect_reference import FIELDS, on_threshold_stream, run, simulated
+
+needs_numba = pytest.mark.skipif(detect_numba._kernels() is None,
+                                 reason="numba is not installed (pip install 'selfcal[fast]')")
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return (a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
+            and np.array_equal(np.signbit(a), np.signbit(b)))
+
+
+def stream_like(rng: np.random.Generator) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+    """Samples by channel (c, n) with still stretches, offsets far from zero, a few huge
+    values (rolling sums that overflow), and sd bounds near the data's: (x, w, lo, hi)."""
+    c = int(rng.integers(1, 9))
+    n = int(rng.integers(2, 20_000))
+    w = int(rng.integers(2, min(n, 300) + 1))
+    scale = 10.0 ** rng.integers(-6, 3)
+    x = rng.normal(0, scale, (c, n)) + rng.normal(0, 1, (c, 1)) * 10.0 ** rng.integers(0, 4)
+    a = int(rng.integers(0, n))
+    x[:, a:a + int(rng.integers(1, 5000))] *= 1e-4  # a still stretch
+    if rng.random() < 0.2:
+        x[rng.integers(0, c), rng.integers(0, n)] = rng.choice([1e200, 1e300, -1e160])
+    sd = np.abs(rng.normal(0, scale, c))
+    lo = np.where(rng.random(c) < 0.5, sd * 0.1, 0.0)
+    return x, w, lo, sd * rng.uniform(0.5, 2.0, c)
+
+
+@needs_numba
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_the_sliding_sd_test_flags_are_the_numpy_codes(seed):
+    rng = np.random.default_rng(seed)
+    for _ in range(120):
+        x, w, lo, hi = stream_like(rng)
+        with np.errstate(all="ignore"):
+            fast = detect._sd_within(x, w, lo, hi, accelerate=True)
+            slow = detect._sd_within(x, w, lo, hi, accelerate=False)
+        np.testing.assert_array_equal(fast, slow)
+
+
+@needs_numba
+@pytest.mark.parametrize("seed", [4, 5])
+def test_window_statistics_are_numpys_bit_for_bit(seed):
+    """Lengths around numpy's pairwise-summation boundaries (8, 128, halvings), NaN and
+    inf in a channel, windows of negative zeros (numpy's sum starts from +0.0)."""
+    rng = np.random.default_rng(seed)
+    lengths = [2, 3, 7, 8, 9, 15, 16, 17, 127, 128, 129, 130, 255, 256, 257, 1000, 1031, 4097, 20_000, 65_537]
+    for _ in range(150):
+        c = int(rng.integers(1, 9))
+        w = int(rng.choice(lengths))
+        n = w + int(rng.integers(0, 2000))
+        x = rng.normal(0, 1, (c, n)) * 10.0 ** rng.integers(-6, 4, (c, 1)) + 10.0 ** rng.integers(0, 3, (c, 1))
+        if rng.random() < 0.3:
+            x[-1, rng.integers(0, n)] = rng.choice([np.nan, np.inf, -np.inf, 1e308])
+        if rng.random() < 0.15:
+            x[0] = -0.0
+        idx = rng.integers(0, n - w + 1, int(rng.integers(1, 12)))
+        with np.errstate(all="ignore"):
+            m1, s1 = detect._exact_window_stats(x, w, idx, accelerate=True)
+            m2, s2 = detect._exact_window_stats(x, w, idx, accelerate=False)
+        assert same_bits(m1, m2) and same_bits(s1, s2), (w, c)
+
+
+@needs_numba
+@pytest.mark.parametrize("rate_hz, days", [(20, 0.3), (100, 0.05)])
+def test_every_window_of_a_stream_is_the_same_with_and_without_numba(monkeypatch, rate_hz, days):
+    """Simulated wear (20-Hz insole with pressure, 100-Hz wrist-like) and a stream built to
+    sit on the sd thresholds, whole and in chunks of 1-400 samples."""
+    data = simulated(7, rate_hz, days)
+    rng = np.random.default_rng(8)
+    cuts = np.cumsum(rng.integers(1, 400, len(data[0]) // 150))
+    cfg = {"rate_hz": rate_hz}
+    for cut in (None, list(cuts)):
+        monkeypatch.setenv("SELFCAL_NUMBA", "1")
+        fast = run(detect, cfg, data, cut)
+        monkeypatch.setenv("SELFCAL_NUMBA", "0")
+        slow = run(detect, cfg, data, cut)
+        assert len(fast) == len(slow) > 10
+        for name in FIELDS:
+            assert same_bits(getattr(fast, name), getattr(slow, name)), name
+    edge = on_threshold_stream({}, seed=9)
+    monkeypatch.setenv("SELFCAL_NUMBA", "1")
+    fast = run(detect, {}, edge)
+    monkeypatch.setenv("SELFCAL_NUMBA", "0")
+    slow = run(detect, {}, edge)
+    for name in FIELDS:
+        assert same_bits(getattr(fast, name), getattr(slow, name)), name
+
+
+def test_switched_off_or_disagreeing_kernels_are_not_used(monkeypatch):
+    """``SELFCAL_NUMBA=0`` gives the numpy code; a statistics kernel that differs from
+    numpy in one bit (a numpy that sums in another order) fails the first-use check."""
+    monkeypatch.setenv("SELFCAL_NUMBA", "0")
+    assert detect_numba.sd_codes_kernel() is None and detect_numba.window_stats_kernel() is None
+
+    def numpy_stats(x, w, idx):
+        win = np.take(x, idx[:, None] + np.arange(w), axis=1)
+        mu = win.mean(axis=-1)
+        dev = win - mu[..., None]
+        return mu.T, np.sqrt((dev * dev).sum(axis=-1) / (w - 1)).T
+
+    def one_ulp_off(x, w, idx):
+        mu, sd = numpy_stats(x, w, idx)
+        return np.nextafter(mu, np.inf), sd
+
+    def sequential(x, w, idx):  # the naive order: differs from numpy's pairwise sums
+        win = np.take(x, idx[:, None] + np.arange(w), axis=1)
+        mu = np.zeros(win.shape[:2])
+        for i in range(w):
+            mu = mu + win[..., i]
+        mu = mu / w
+        dev = win - mu[..., None]
+        return mu.T, np.sqrt((dev * dev).sum(axis=-1) / (w - 1)).T
+
+    assert detect_numba._same_stats_as_numpy(numpy_stats)
+    assert not detect_numba._same_stats_as_numpy(one_ulp_off)
+    assert not detect_numba._same_stats_as_numpy(sequential)
