@@ -10,7 +10,9 @@ import math
 import numba
 import numpy as np
 
-from selfcal.detect_numba import IN, OUT, UNSURE
+# the verdicts of sd_codes, as literals: numba bakes them into its cached code, and would
+# not see an edit of selfcal.detect_numba's (which checks that they agree)
+OUT, IN, UNSURE = 0, 1, 2
 
 _jit = numba.njit(cache=True, nogil=True)
 

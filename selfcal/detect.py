@@ -535,7 +535,7 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, acce
         ok = codes == IN
         unsure = np.flatnonzero(codes == UNSURE)
         if unsure.size:
-            _, sd = _exact_window_stats(x, w, unsure)
+            _, sd = _exact_window_stats(x, w, unsure, accelerate)
             ok[unsure] = ((sd <= hi_sd) & (sd >= lo_sd)).all(axis=1)
         return ok
     for lo in range(0, m, _ROLL_BLOCK):
@@ -571,7 +571,7 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, acce
                 maybe = possible.all(axis=0) & ~sure_in
         unsure = np.flatnonzero(maybe)
         if unsure.size:
-            _, sd = _exact_window_stats(x, w, unsure + lo)
+            _, sd = _exact_window_stats(x, w, unsure + lo, accelerate)
             ok[lo + unsure] = ((sd <= hi_sd) & (sd >= lo_sd)).all(axis=1)  # sd >= 0 >= lo_sd: no bound
     return ok
 

@@ -16,8 +16,18 @@ needs_numba = pytest.mark.skipif(detect_numba._kernels() is None,
 
 
 def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    """Equal values, NaN at the same places, the same signs of zeros (a NaN's sign is the
+    compiler's choice when two NaNs meet, so not compared)."""
+    sign = ~np.isnan(a)
     return (a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
-            and np.array_equal(np.signbit(a), np.signbit(b)))
+            and np.array_equal(np.signbit(a)[sign], np.signbit(b)[sign]))
+
+
+@pytest.fixture(autouse=True)
+def numba_on(monkeypatch):
+    """The kernels on (a SELFCAL_NUMBA=0 in the environment would make these tests compare
+    numpy with numpy); a test that wants them off says so."""
+    monkeypatch.setenv("SELFCAL_NUMBA", "1")
 
 
 def stream_like(rng: np.random.Generator) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
@@ -126,3 +136,32 @@ def test_switched_off_or_disagreeing_kernels_are_not_used(monkeypatch):
     assert detect_numba._same_stats_as_numpy(numpy_stats)
     assert not detect_numba._same_stats_as_numpy(one_ulp_off)
     assert not detect_numba._same_stats_as_numpy(sequential)
+
+
+def test_a_numba_that_fails_leaves_the_numpy_code_with_one_warning(monkeypatch):
+    """No cache location (a read-only install), a compiler error, kernels whose verdict
+    codes disagree with the front's: the detector runs its numpy code, same windows."""
+    import types
+
+    data = simulated(7, 20, 0.05)
+    monkeypatch.setenv("SELFCAL_NUMBA", "0")
+    want = run(detect, {}, data)
+    monkeypatch.setenv("SELFCAL_NUMBA", "1")
+
+    def no_cache():
+        raise RuntimeError("cannot cache function 'sd_codes': no locator available")
+
+    other_codes = types.SimpleNamespace(OUT=1, IN=0, UNSURE=2, sd_codes=None, window_stats=None)
+    try:
+        for load in (no_cache, lambda: other_codes):
+            monkeypatch.setattr(detect_numba, "_load", load)
+            detect_numba._kernels.cache_clear()
+            with pytest.warns(RuntimeWarning, match="numpy code"):
+                assert detect_numba.sd_codes_kernel() is None
+            assert detect_numba.window_stats_kernel() is None
+            got = run(detect, {}, data)
+            for name in FIELDS:
+                assert same_bits(getattr(got, name), getattr(want, name)), name
+    finally:
+        monkeypatch.undo()
+        detect_numba._kernels.cache_clear()
