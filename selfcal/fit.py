@@ -317,20 +317,35 @@ class NoiseModel:
         """
         theta = np.asarray(theta, dtype=float)
         s = theta[3:6]
+        sigma, gain, lin = self._sigma_gain(theta)
         dsig = np.zeros((self.var_axis.shape[0], theta.shape[0]))
-        if self.nonlin is None:
-            sigma = np.sqrt(self.var_axis @ (s * s) + self.floor2)
+        if gain is None:
             dsig[:, 3:6] = self.var_axis * s / sigma[:, None]
             return sigma, dsig
-        model, raw_u, temp, t_s = self.nonlin
+        model = self.nonlin[0]
         sl = model.index("scale_nonlinearity")
         q = theta[sl]
-        lin = model._forward(theta, raw_u, temp, t_s)[1][2]
-        gain = s * (1.0 - 2.0 * q * lin)
-        sigma = np.sqrt(np.sum(self.var_axis * gain * gain, axis=1) + self.floor2)
         dsig[:, 3:6] = self.var_axis * gain * (1.0 - 4.0 * q * lin) / sigma[:, None]
         dsig[:, sl] = self.var_axis * gain * (-2.0 * s * lin) / sigma[:, None]
         return sigma, dsig
+
+    def sigma(self, theta: np.ndarray) -> np.ndarray:
+        """``sigma (n,)`` (g) alone at ``theta``: the first of :meth:`__call__`'s results,
+        the same values, without building the (n, p) derivative (the fit's cost, its
+        reweighting and its covariance need only sigma)."""
+        return self._sigma_gain(np.asarray(theta, dtype=float))[0]
+
+    def _sigma_gain(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """``(sigma (n,), gain (n, 3), lin (n, 3))``; gain and lin are None without
+        ``scale_nonlinearity`` (the gain is then the scales)."""
+        s = theta[3:6]
+        if self.nonlin is None:
+            return np.sqrt(self.var_axis @ (s * s) + self.floor2), None, None
+        model, raw_u, temp, t_s = self.nonlin
+        q = theta[model.index("scale_nonlinearity")]
+        lin = model._forward(theta, raw_u, temp, t_s)[1][2]
+        gain = s * (1.0 - 2.0 * q * lin)
+        return np.sqrt(np.sum(self.var_axis * gain * gain, axis=1) + self.floor2), gain, lin
 
 
 # --------------------------------------------------------------------------- LM
@@ -790,7 +805,7 @@ def fit_poses(
     raw_u = normalizer.to_u(poses.mean)
     sd_u = None if poses.sd is None else poses.sd / normalizer.scale
     noise = NoiseModel.from_poses(raw_u, sd_u, poses.count, cfg, model, poses.temp_c, poses.t_s)
-    sigma = noise(prior.mean)[0]
+    sigma = noise.sigma(prior.mean)
     temp = poses.temp_c
     if temp is None and any(e.startswith("temperature") for e in model.effects):
         raise InputError(f"model {model.name} needs temperatures (temp_c) for every pose")
@@ -799,7 +814,7 @@ def fit_poses(
     lam_p = prior.precision()
 
     def cost_of(theta):
-        r = model.residuals(theta, raw_u, temp, t_s) / noise(theta)[0]
+        r = model.residuals(theta, raw_u, temp, t_s) / noise.sigma(theta)
         d = theta - prior.mean
         c = 0.5 * (r @ r + d @ lam_p @ d)
         return c if np.isfinite(c) else np.inf
@@ -848,7 +863,7 @@ def fit_poses(
         # coherent outliers cannot pull the estimate by its bounded Huber influence
         for skip in (False, True):
             for _ in range(cfg.irls_max):
-                z = best.fun / noise(best.x)[0]
+                z = best.fun / noise.sigma(best.x)
                 w_new = np.minimum(1.0, cfg.robust_c / np.maximum(np.abs(z), 1e-300))
                 if skip:
                     w_new = np.where(np.abs(z) > cfg.reject_z, 1e-12, w_new)
@@ -861,7 +876,7 @@ def fit_poses(
                     best = res
 
     # uncertainty (sigma at the estimate)
-    sigma = noise(best.x)[0]
+    sigma = noise.sigma(best.x)
     z = best.fun / sigma
     inlier = np.abs(z) <= cfg.reject_z if robust else np.ones(len(z), dtype=bool)
     info_w = np.where(inlier, weights, 0.0)

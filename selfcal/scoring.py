@@ -229,7 +229,7 @@ def efficient_reference(model_name: str, truth: dict, poses, t_end_s: float) -> 
     t_s = np.asarray(poses.t_s, float) + 0.5 * np.asarray(poses.duration_s, float)
     data = PoseData(poses.mean_g, np.sqrt(poses.noise_var_g2), np.ones(len(t_s)), t_s, poses.temp_c)
     cfg = FitConfig(sigma_floor_g=0.0)
-    sigma = NoiseModel.from_poses(data.mean, data.sd, data.count, cfg, model, data.temp_c, t_s)(truth_u)[0]
+    sigma = NoiseModel.from_poses(data.mean, data.sd, data.count, cfg, model, data.temp_c, t_s).sigma(truth_u)
     _, jac = model.residual_jac(truth_u, data.mean, data.temp_c, t_s)
     jw = jac / sigma[:, None]
     crlb = crlb_from_information(model, truth_u, jw.T @ jw, t_end_s, cfg)
