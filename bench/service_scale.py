@@ -360,18 +360,25 @@ def main() -> int:
                     f"{g}: {n:.0f}, {tot * 1e3:.0f} ms, {long_:.0f}" for g, (n, tot, long_) in r["gc"].items()), flush=True)
             print("    backlog over time (s: oldest age s / batches): " + ", ".join(
                 f"{t:.0f}: {a:.1f}/{b:.0f}" for t, a, b in r["backlog"]), flush=True)
-    # refit throughput: what was acknowledged minus what piled up (slope of the backlog)
+    # refit throughput: what was acknowledged minus what piled up (slope of the backlog). The
+    # backlog fills first (batches wait for their cycle; with --min-cycle-s for the interval),
+    # so over a run of 8 samples or more the slope of its second half is the steady one
     per_batch = args.batch_s * 20.0
-    print("\nrefit throughput (acked minus backlog growth):")
+    print("\nrefit throughput (acked minus backlog growth; the growth over the second half of the run "
+          "when it has 8 backlog samples or more, the first minute's fill left out):")
     for r in results:
         pts = [(t, b) for t, _, b in r["backlog"] if b == b]
-        slope = 0.0
+        slope = steady = 0.0
         if len(pts) >= 2:
             import numpy as np
 
-            slope = float(np.polyfit([t for t, _ in pts], [b for _, b in pts], 1)[0])
-        r["fed_sps"] = max(0.0, r["sustained_sps"] - slope * per_batch)
-        print(f"  {r['label']:<38} fed {r['fed_sps']:>9,.0f} samples/s; backlog grows {slope:6.1f} batches/s")
+            slope = steady = float(np.polyfit([t for t, _ in pts], [b for _, b in pts], 1)[0])
+            if len(pts) >= 8:
+                half = pts[len(pts) // 2:]
+                steady = float(np.polyfit([t for t, _ in half], [b for _, b in half], 1)[0])
+        r["fed_sps"] = max(0.0, r["sustained_sps"] - steady * per_batch)
+        print(f"  {r['label']:<38} fed {r['fed_sps']:>9,.0f} samples/s; backlog grows {steady:6.1f} batches/s "
+              f"({slope:.1f} over the whole run)")
     ingest = max(r["sustained_sps"] / max(1, r["procs"]) for r in results)
     refit = max((r["fed_sps"] / r["refit_workers"] for r in results if r["refit_workers"]), default=0.0)
     if refit <= 0:
