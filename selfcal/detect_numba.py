@@ -42,16 +42,19 @@ def enabled() -> bool:
 def sd_codes_kernel():
     """``(x (c, n) float64, w, thresholds (c, 4), roll_block, unit_roundoff) -> codes
     (n - w + 1,) int8`` (OUT, IN, UNSURE), or None (numba missing or switched off)."""
-    kernels = _kernels() if enabled() else None
-    return None if kernels is None else kernels[0]
+    return _kernel(0)
 
 
 def window_stats_kernel():
     """``(x (c, n) float64, w, idx (k,) int64) -> (mean (k, c), sd (k, c))``, numpy's
     two-pass statistics bit for bit, or None (numba missing or switched off, or this
     numpy sums in another order)."""
+    return _kernel(1)
+
+
+def _kernel(i: int):
     kernels = _kernels() if enabled() else None
-    return None if kernels is None else kernels[1]
+    return None if kernels is None else kernels[i]
 
 
 _compile_lock = threading.Lock()  # one first-use compilation and check, not one per thread
@@ -105,17 +108,16 @@ def _same_stats_as_numpy(kernel) -> bool:
     """Whether ``kernel`` gives numpy's means and sds, bit for bit (the sign of a zero
     included), on windows of lengths around every boundary of numpy's pairwise summation
     (8, 128 and their halvings) up to 10 s at 1.6 kHz."""
+    from selfcal.detect import _exact_window_stats  # (selfcal.detect imports this module)
+
     rng = np.random.default_rng(12345)
     for w in (2, 3, 7, 8, 9, 15, 16, 17, 127, 128, 129, 136, 255, 256, 257, 1000, 1031, 4097, 8193, 16385):
         x = rng.normal(1.0, 1e-3, (3, w + 40)) * rng.uniform(0.5, 2.0, (3, 1))
         x[1, 17 : 17 + w] = -0.0  # a window of negative zeros: numpy's sum starts from 0.0
         idx = np.array([0, 1, 17, 40], dtype=np.int64)
-        windows = np.take(x, idx[:, None] + np.arange(w), axis=1)  # (3, 4, w), as the numpy code takes them
-        mu = windows.mean(axis=-1)
-        dev = windows - mu[..., None]
-        sd = np.sqrt((dev * dev).sum(axis=-1) / (w - 1))
+        want_mu, want_sd = _exact_window_stats(x, w, idx, accelerate=False)  # the numpy code
         got_mu, got_sd = kernel(x, w, idx)
-        for got, want in ((got_mu, mu.T), (got_sd, sd.T)):
+        for got, want in ((got_mu, want_mu), (got_sd, want_sd)):
             if not (np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))):
                 return False
     return True
