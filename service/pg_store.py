@@ -61,7 +61,7 @@ from selfcal_service.storage import (
 
 log = logging.getLogger("selfcal.service.postgres")
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 # acquire_leases looks at this many more of the longest-waiting devices than it takes, and
 # takes the worker's own (last fed by it) among them first
 AFFINITY_SLACK = 32
@@ -261,6 +261,20 @@ _LEASE_EXPIRES = [
 _STATE_MOVED = ("ALTER TABLE devices ADD CONSTRAINT devices_state_in_checkpoints "
                 "CHECK (calibrator_state IS NULL)")
 
+# v7: the large values (a batch's payload, a checkpoint's base and patch) are compressed
+# with lz4 where the server has it (PostgreSQL 14+ built with lz4, as Debian's and the
+# official images are) instead of pglz. pglz took ~0.3 ms of the server's CPU of each
+# 400-sample batch's ~0.5-ms insert (a quarter of the server's CPU a sample at fleet
+# scale); lz4 compresses the insole's quantised samples ~2.5x against pglz's ~4.8x.
+# Only new values are written with it; the values stored before stay pglz (both read).
+# Without lz4 nothing changes: the columns keep the server's default.
+_LZ4_COLUMNS = (("batches", "payload"), ("checkpoints", "base"), ("checkpoints", "patch"))
+_LZ4_COMPRESSION = (
+    "DO $lz4$ BEGIN IF EXISTS (SELECT 1 FROM pg_settings WHERE name = 'default_toast_compression' "
+    "AND 'lz4' = ANY(enumvals)) THEN "
+    + " ".join(f"EXECUTE 'ALTER TABLE {t} ALTER COLUMN {c} SET COMPRESSION lz4';" for t, c in _LZ4_COLUMNS)
+    + " END IF; END $lz4$")
+
 _SCHEMA = [
     "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
     """CREATE TABLE IF NOT EXISTS devices (
@@ -314,6 +328,7 @@ _SCHEMA = [
     _PROGRESS_FUNCTION,
     _WORKER_UNTIL,
     *_LEASE_EXPIRES,
+    _LZ4_COMPRESSION,
 ]
 
 #: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
@@ -336,6 +351,7 @@ MIGRATIONS: dict[int, list[str]] = {
         *_LEASE_EXPIRES,
     ],
     5: [_PROGRESS_FUNCTION_V5, *_CHECKPOINT_PATCH, _PROGRESS_FUNCTION],  # v6: checkpoint patches
+    6: [_LZ4_COMPRESSION],  # v7: lz4 for new large values
 }
 
 _COLS = [*DEVICE_COLUMNS, "state_rev"]

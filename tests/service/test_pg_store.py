@@ -271,3 +271,62 @@ def test_the_one_round_trip_commit_writes_and_refuses_as_the_statements_do(two_s
                                              samples_added=1, calibrator_state=None, calibrator_status=None,
                                              last_refit=None, feed_state={})).result(timeout=30)
     assert a.load_device("dev-new") is None
+
+
+def _has_lz4(conn) -> bool:
+    return conn.execute("SELECT EXISTS (SELECT 1 FROM pg_settings WHERE name = 'default_toast_compression' "
+                        "AND 'lz4' = ANY(enumvals))").fetchone()[0]
+
+
+def _compression(conn) -> dict[str, str]:
+    rows = conn.execute("SELECT attrelid::regclass::text || '.' || attname, attcompression FROM pg_attribute "
+                        "WHERE attrelid IN ('batches'::regclass, 'checkpoints'::regclass) AND attnum > 0 "
+                        "AND NOT attisdropped AND attcompression <> ''").fetchall()
+    return dict(rows)
+
+
+def test_large_values_are_compressed_with_lz4_and_a_schema_6_database_migrates(tmp_path):
+    """Schema 7: new payloads and checkpoints are written with lz4 (where the server has it);
+    a batch stored with pglz before the migration reads back unchanged after it."""
+    import numpy as np
+    import psycopg
+
+    from selfcal_service.pg_store import SCHEMA_VERSION
+
+    url = backend_db(tmp_path / "pg-lz4.db")
+    store = PostgresStore(url)
+    store.open()
+    store.close()
+    lz4 = {"batches.payload": "l", "checkpoints.base": "l", "checkpoints.patch": "l"}
+    rng = np.random.default_rng(7)
+    # a batch's worth of quantised samples: compressible, and above the 2-kB TOAST threshold
+    old_payload = (np.round(rng.normal(0, 50, 3200)) / 1024).astype("<f8").tobytes()
+    new_payload = (np.round(rng.normal(0, 50, 3200)) / 1024).astype("<f8").tobytes()
+    with psycopg.connect(url, autocommit=True) as conn:
+        if not _has_lz4(conn):
+            pytest.skip("this PostgreSQL server has no lz4 (before 14, or built without it)")
+        assert _compression(conn) == lz4  # a new database
+        # back to schema 6: the server's default (pglz) for these columns
+        for col in ("batches.payload", "checkpoints.base", "checkpoints.patch"):
+            table, name = col.split(".")
+            conn.execute(f"ALTER TABLE {table} ALTER COLUMN {name} SET COMPRESSION pglz")
+        conn.execute("UPDATE meta SET value = '6' WHERE key = 'schema_version'")
+    store = PostgresStore(url)
+    try:
+        # stored by a schema-6 service (pglz), before the migration
+        with psycopg.connect(url, autocommit=True) as conn:
+            conn.execute("INSERT INTO devices(device_id, created_at) VALUES ('dev-z', 0)")
+            conn.execute("INSERT INTO batches(device_id, seq, n_samples, received_at, payload) "
+                         "VALUES ('dev-z', 0, 800, 0, %s)", (old_payload,))
+        store.open()
+        _ingest(store, "dev-z", 1, payload=new_payload).result(timeout=30)
+        got = [(b.seq, bytes(b.payload)) for b in store.pending_batches("dev-z", 10)]
+        assert got == [(0, old_payload), (1, new_payload)]
+    finally:
+        store.close()
+    with psycopg.connect(url, autocommit=True) as conn:
+        assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == str(SCHEMA_VERSION)
+        assert _compression(conn) == lz4
+        methods = conn.execute("SELECT seq, pg_column_compression(payload) FROM batches "
+                               "WHERE device_id = 'dev-z' ORDER BY seq").fetchall()
+        assert methods == [(0, "pglz"), (1, "lz4")]
