@@ -175,10 +175,11 @@ def run_config(label: str, db: str, procs: int, refit_workers: int, args, pg_pid
     if db.startswith("postgresql"):
         cmd += ["--workers", str(procs), "--no-refit"]
     else:
-        cmd += ["--refit-threads", str(args.worker_threads)]
+        cmd += ["--refit-threads", str(args.worker_threads)] if args.worker_threads else []
     server = subprocess.Popen(cmd, env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
     workers = [subprocess.Popen([sys.executable, "-m", "selfcal.cli", "worker", "--db", db, "--status-every-s", "0",
-                                 "--threads", str(args.worker_threads), "--nice", str(args.worker_nice),
+                                 *(["--threads", str(args.worker_threads)] if args.worker_threads else []),
+                                 "--nice", str(args.worker_nice),
                                  *(["--idle"] if args.worker_idle else []),
                                  "--log-level", "warning"], env=env, cwd=str(REPO), stderr=subprocess.DEVNULL)
                for _ in range(refit_workers if db.startswith("postgresql") else 0)]
@@ -262,7 +263,9 @@ def main() -> int:
     ap.add_argument("--refit-workers", type=int, default=1, help="selfcal worker processes on PostgreSQL")
     ap.add_argument("--worker-nice", type=int, default=0, help="selfcal worker --nice N (PostgreSQL)")
     ap.add_argument("--worker-idle", action="store_true", help="selfcal worker --idle (SCHED_IDLE, Linux)")
-    ap.add_argument("--worker-threads", type=int, default=1, help="refit threads of each worker (and of SQLite's process)")
+    ap.add_argument("--worker-threads", type=int, default=None,
+                    help="refit threads of each worker (and of SQLite's process); default: theirs "
+                         "(selfcal worker 4, selfcal serve 1)")
     ap.add_argument("--format", choices=["json", "binary"], default="binary")
     ap.add_argument("--min-cycle-s", type=float, default=0.0,
                     help="[service] min_cycle_interval_s of the refit workers and SQLite's process (0: as batches come)")

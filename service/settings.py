@@ -43,6 +43,10 @@ class Settings(BaseModel):
     )
     group_commit_max_ops: int = Field(512, ge=1, description="writes per SQLite transaction")
     worker_threads: int = Field(1, ge=1, le=64, description="refit workers (devices sharded)")
+    worker_process_threads: int = Field(
+        4, ge=1, le=64,
+        description="refit threads of each `selfcal worker` process (PostgreSQL; `--threads`): a cycle waits for its "
+                    "durable commit, and several threads keep several cycles' commits in flight")
     worker_max_batches_per_cycle: int = Field(256, ge=1)
     time_reset_gap_s: float = Field(
         60.0, gt=0, description="gap inserted when a device clock goes backwards (reboot)"

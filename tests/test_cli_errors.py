@@ -48,6 +48,8 @@ CASES = [
     ("a bias step by name", lambda d: ["calibrate", POSES, "--model", "affine9+bias_step"], 2, "t_step_s"),
     ("worker nice out of range", lambda d: ["worker", "--db", "postgresql://x@127.0.0.1:1/x", "--nice", "25"], 2,
      "--nice 25"),
+    ("worker threads out of range", lambda d: ["worker", "--db", "postgresql://x@127.0.0.1:1/x", "--threads", "0"], 2,
+     "--threads 0"),
     ("bad TOML", lambda d: ["calibrate", POSES, "--config", d / "bad.toml"], 2, "invalid TOML"),
     ("missing config", lambda d: ["calibrate", POSES, "--config", d / "none.toml"], 2, "config file not found"),
     ("unknown config key", lambda d: ["calibrate", POSES, "--config", d / "unknown_key.toml"], 2, "no_such_key"),

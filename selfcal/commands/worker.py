@@ -16,7 +16,8 @@ import sys
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--db", metavar="URL", required=True, help="postgresql://user@host:port/dbname")
-    parser.add_argument("--threads", type=int, default=None, help="refit threads (default 1)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="refit threads (default: [service] worker_process_threads, 4); a cycle waits for its durable commit, so one thread leaves the process idle on the database")
     parser.add_argument("--nice", type=int, default=0, metavar="N",
                         help="lower this process's CPU priority by N (0-19): on a machine shared with API "
                              "processes, reads then go first and refits take what is left")
@@ -69,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
     except ModuleNotFoundError as exc:  # pragma: no cover - depends on the install
         raise InputError(f"the worker needs the 'service' and 'postgres' extras: {exc}") from exc
 
+    if args.threads is not None and not 1 <= args.threads <= 64:
+        raise InputError(f"--threads {args.threads}: must be 1 to 64")
     if not 0 <= args.nice <= 19:
         raise InputError(f"--nice {args.nice}: must be 0 to 19")
     lower_priority(args.nice, args.idle)
@@ -77,8 +80,9 @@ def run(args: argparse.Namespace) -> int:
                          "(with a SQLite file, `selfcal serve` runs the refits itself)")
     cfg = load_config(args.config)
     settings = load_settings(section(cfg, "service"), overrides={
-        "db_path": args.db, "worker_threads": args.threads, "log_level": args.log_level,
-        "log_format": args.log_format})
+        "db_path": args.db, "log_level": args.log_level, "log_format": args.log_format,
+        "worker_process_threads": args.threads})
+    settings = settings.model_copy(update={"worker_threads": settings.worker_process_threads})
     if settings.log_format == "json":
         import logging.config
 

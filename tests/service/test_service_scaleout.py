@@ -95,6 +95,8 @@ def test_kill9_of_a_worker_and_an_api_process_loses_nothing_and_matches_one_proc
         while not all(w.log.exists() and "selfcal worker" in w.log.read_text() for w in workers):
             assert time.monotonic() < deadline, "the workers did not start"
             time.sleep(0.1)
+        # each worker at its default: 4 refit threads, cycles of several devices in flight at once
+        assert all("threads=4," in w.log.read_text() for w in workers), [w.log.read_text() for w in workers]
         sent = {dev: 0 for dev in DEVICES}
 
         def sender(dev: str) -> None:
