@@ -61,7 +61,7 @@ from selfcal_service.storage import (
 
 log = logging.getLogger("selfcal.service.postgres")
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 6
 # acquire_leases looks at this many more of the longest-waiting devices than it takes, and
 # takes the worker's own (last fed by it) among them first
 AFFINITY_SLACK = 32
@@ -261,19 +261,19 @@ _LEASE_EXPIRES = [
 _STATE_MOVED = ("ALTER TABLE devices ADD CONSTRAINT devices_state_in_checkpoints "
                 "CHECK (calibrator_state IS NULL)")
 
-# v7: the large values (a batch's payload, a checkpoint's base and patch) are compressed
-# with lz4 where the server has it (PostgreSQL 14+ built with lz4, as Debian's and the
-# official images are) instead of pglz. pglz took ~0.3 ms of the server's CPU of each
+# The large values (a batch's payload, a checkpoint's base and patch) are compressed with
+# lz4 where the server has it (PostgreSQL 14+ built with lz4, as Debian's packages and the
+# official images are) instead of pglz: pglz took ~0.3 ms of the server's CPU of each
 # 400-sample batch's ~0.5-ms insert (a quarter of the server's CPU a sample at fleet
-# scale); lz4 compresses the insole's quantised samples ~2.5x against pglz's ~4.8x.
-# Only new values are written with it; the values stored before stay pglz (both read).
-# Without lz4 nothing changes: the columns keep the server's default.
+# scale); lz4 stores the insole's quantised samples ~2.5x smaller than raw against pglz's
+# ~4.8x. A physical setting, not a schema version: set at every start where missing, with
+# a short lock timeout (ALTER TABLE takes an exclusive lock, and must not queue every
+# ingest behind a long reader), and skipped, to be tried at the next start, if the lock
+# cannot be had. Only values written after it are lz4; those before stay pglz (both read).
 _LZ4_COLUMNS = (("batches", "payload"), ("checkpoints", "base"), ("checkpoints", "patch"))
-_LZ4_COMPRESSION = (
-    "DO $lz4$ BEGIN IF EXISTS (SELECT 1 FROM pg_settings WHERE name = 'default_toast_compression' "
-    "AND 'lz4' = ANY(enumvals)) THEN "
-    + " ".join(f"EXECUTE 'ALTER TABLE {t} ALTER COLUMN {c} SET COMPRESSION lz4';" for t, c in _LZ4_COLUMNS)
-    + " END IF; END $lz4$")
+_LZ4_LOCK_TIMEOUT = "1s"
+_HAS_LZ4 = ("SELECT EXISTS (SELECT 1 FROM pg_settings WHERE name = 'default_toast_compression' "
+            "AND 'lz4' = ANY(enumvals))")
 
 _SCHEMA = [
     "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
@@ -328,7 +328,6 @@ _SCHEMA = [
     _PROGRESS_FUNCTION,
     _WORKER_UNTIL,
     *_LEASE_EXPIRES,
-    _LZ4_COMPRESSION,
 ]
 
 #: Ordered migrations: ``MIGRATIONS[v]`` takes a database from schema v to v + 1.
@@ -351,7 +350,6 @@ MIGRATIONS: dict[int, list[str]] = {
         *_LEASE_EXPIRES,
     ],
     5: [_PROGRESS_FUNCTION_V5, *_CHECKPOINT_PATCH, _PROGRESS_FUNCTION],  # v6: checkpoint patches
-    6: [_LZ4_COMPRESSION],  # v7: lz4 for new large values
 }
 
 _COLS = [*DEVICE_COLUMNS, "state_rev"]
@@ -518,11 +516,36 @@ class PostgresStore(GroupCommitStore):
                             version += 1
                             conn.execute("UPDATE meta SET value = %s WHERE key = 'schema_version'", (str(version),))
                         log.warning("database migrated to schema version %d", version)
+                self._compress_with_lz4(conn)
             finally:
                 conn.execute("SELECT pg_advisory_unlock(%s)", (_SCHEMA_LOCK,))
         finally:
             self._close_writer(conn)
         self._start_writer("selfcal-postgres-writer")
+
+    @staticmethod
+    def _compress_with_lz4(conn: Any) -> None:
+        """lz4 for the large columns where the server has it and they lack it (see
+        ``_LZ4_COLUMNS``); a lock not had within ``_LZ4_LOCK_TIMEOUT`` leaves them as they
+        are until the next start."""
+        import psycopg
+
+        if not conn.execute(_HAS_LZ4).fetchone()[0]:
+            return
+        todo = [(t, c) for t, c in _LZ4_COLUMNS if conn.execute(
+            "SELECT attcompression FROM pg_attribute WHERE attrelid = %s::regclass AND attname = %s",
+            (t, c)).fetchone()[0] != "l"]
+        if not todo:
+            return
+        try:
+            with conn.transaction():
+                conn.execute(f"SET LOCAL lock_timeout = '{_LZ4_LOCK_TIMEOUT}'")
+                for table, column in todo:
+                    conn.execute(f"ALTER TABLE {table} ALTER COLUMN {column} SET COMPRESSION lz4")
+            log.info("lz4 compression set for %s", ", ".join(f"{t}.{c}" for t, c in todo))
+        except psycopg.errors.LockNotAvailable:
+            log.warning("lz4 compression not set for %s: another session holds a lock on the table "
+                        "(tried again at the next start)", ", ".join(f"{t}.{c}" for t, c in todo))
 
     def close(self) -> None:
         self._stop_writer()

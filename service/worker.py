@@ -276,9 +276,10 @@ class RefitWorker:
         for shard in self._shards:
             with shard.cond:
                 shard.cond.notify_all()
+        deadline = time.monotonic() + 60  # one wait for all the threads' current cycles, not 60 s each
         for shard in self._shards:
             if shard.thread is not None:
-                shard.thread.join(timeout=60)
+                shard.thread.join(timeout=max(0.0, deadline - time.monotonic()))
         if self._lease_thread is not None:
             self._lease_thread.join(timeout=30)
         # a restart then restores without a replay; with leases, only the devices still held

@@ -93,7 +93,10 @@ def run(args: argparse.Namespace) -> int:
         logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cal_config = {k: v for k, v in cfg.items() if k not in ("service", "gateway")}
     factory = CalibratorFactory(settings.calibrator, config=cal_config, model=settings.calibrator_model)
-    store = PostgresStore(settings.db_path, group_commit_max_ops=settings.group_commit_max_ops)
+    # a reader connection for each refit thread, the lease thread and the status line, kept
+    # between uses (8 idle at most by default: more threads would open and close them)
+    store = PostgresStore(settings.db_path, group_commit_max_ops=settings.group_commit_max_ops,
+                          max_idle_readers=max(8, settings.worker_threads + 4))
     try:
         store.open()
     except Exception as exc:  # noqa: BLE001 - unreachable database: one clear line

@@ -273,9 +273,11 @@ def test_the_one_round_trip_commit_writes_and_refuses_as_the_statements_do(two_s
     assert a.load_device("dev-new") is None
 
 
+
 def _has_lz4(conn) -> bool:
-    return conn.execute("SELECT EXISTS (SELECT 1 FROM pg_settings WHERE name = 'default_toast_compression' "
-                        "AND 'lz4' = ANY(enumvals))").fetchone()[0]
+    from selfcal_service.pg_store import _HAS_LZ4
+
+    return conn.execute(_HAS_LZ4).fetchone()[0]
 
 
 def _compression(conn) -> dict[str, str]:
@@ -285,9 +287,19 @@ def _compression(conn) -> dict[str, str]:
     return dict(rows)
 
 
-def test_large_values_are_compressed_with_lz4_and_a_schema_6_database_migrates(tmp_path):
-    """Schema 7: new payloads and checkpoints are written with lz4 (where the server has it);
-    a batch stored with pglz before the migration reads back unchanged after it."""
+LZ4 = {"batches.payload": "l", "checkpoints.base": "l", "checkpoints.patch": "l"}
+
+
+def _back_to_pglz(conn) -> None:
+    for col in LZ4:
+        table, name = col.split(".")
+        conn.execute(f"ALTER TABLE {table} ALTER COLUMN {name} SET COMPRESSION pglz")
+
+
+def test_large_values_are_compressed_with_lz4_from_the_next_start(tmp_path):
+    """New payloads and checkpoints are written with lz4 (where the server has it); a
+    database whose columns lack it gets it at the next start, and a batch stored with pglz
+    before reads back unchanged after it. The schema version does not change."""
     import numpy as np
     import psycopg
 
@@ -297,7 +309,6 @@ def test_large_values_are_compressed_with_lz4_and_a_schema_6_database_migrates(t
     store = PostgresStore(url)
     store.open()
     store.close()
-    lz4 = {"batches.payload": "l", "checkpoints.base": "l", "checkpoints.patch": "l"}
     rng = np.random.default_rng(7)
     # a batch's worth of quantised samples: compressible, and above the 2-kB TOAST threshold
     old_payload = (np.round(rng.normal(0, 50, 3200)) / 1024).astype("<f8").tobytes()
@@ -305,19 +316,13 @@ def test_large_values_are_compressed_with_lz4_and_a_schema_6_database_migrates(t
     with psycopg.connect(url, autocommit=True) as conn:
         if not _has_lz4(conn):
             pytest.skip("this PostgreSQL server has no lz4 (before 14, or built without it)")
-        assert _compression(conn) == lz4  # a new database
-        # back to schema 6: the server's default (pglz) for these columns
-        for col in ("batches.payload", "checkpoints.base", "checkpoints.patch"):
-            table, name = col.split(".")
-            conn.execute(f"ALTER TABLE {table} ALTER COLUMN {name} SET COMPRESSION pglz")
-        conn.execute("UPDATE meta SET value = '6' WHERE key = 'schema_version'")
+        assert _compression(conn) == LZ4  # a new database
+        _back_to_pglz(conn)  # as a database created before lz4 was set
+        conn.execute("INSERT INTO devices(device_id, created_at) VALUES ('dev-z', 0)")
+        conn.execute("INSERT INTO batches(device_id, seq, n_samples, received_at, payload) "
+                     "VALUES ('dev-z', 0, 800, 0, %s)", (old_payload,))
     store = PostgresStore(url)
     try:
-        # stored by a schema-6 service (pglz), before the migration
-        with psycopg.connect(url, autocommit=True) as conn:
-            conn.execute("INSERT INTO devices(device_id, created_at) VALUES ('dev-z', 0)")
-            conn.execute("INSERT INTO batches(device_id, seq, n_samples, received_at, payload) "
-                         "VALUES ('dev-z', 0, 800, 0, %s)", (old_payload,))
         store.open()
         _ingest(store, "dev-z", 1, payload=new_payload).result(timeout=30)
         got = [(b.seq, bytes(b.payload)) for b in store.pending_batches("dev-z", 10)]
@@ -326,7 +331,45 @@ def test_large_values_are_compressed_with_lz4_and_a_schema_6_database_migrates(t
         store.close()
     with psycopg.connect(url, autocommit=True) as conn:
         assert conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == str(SCHEMA_VERSION)
-        assert _compression(conn) == lz4
+        assert _compression(conn) == LZ4
         methods = conn.execute("SELECT seq, pg_column_compression(payload) FROM batches "
                                "WHERE device_id = 'dev-z' ORDER BY seq").fetchall()
         assert methods == [(0, "pglz"), (1, "lz4")]
+
+
+def test_a_start_does_not_wait_on_a_long_reader_to_set_lz4(tmp_path, caplog):
+    """ALTER TABLE's exclusive lock would queue every ingest behind a session reading
+    ``batches`` (a dump, a long query): the start gives up on lz4 after a short lock
+    timeout, opens, ingests, and sets it at a later start."""
+    import psycopg
+
+    url = backend_db(tmp_path / "pg-lz4-lock.db")
+    store = PostgresStore(url)
+    store.open()
+    store.close()
+    with psycopg.connect(url, autocommit=True) as conn:
+        if not _has_lz4(conn):
+            pytest.skip("this PostgreSQL server has no lz4 (before 14, or built without it)")
+        _back_to_pglz(conn)
+    reader = psycopg.connect(url)  # a transaction left open on batches (ACCESS SHARE)
+    try:
+        reader.execute("SELECT count(*) FROM batches").fetchone()
+        store = PostgresStore(url)
+        t0 = time.monotonic()
+        with caplog.at_level("WARNING", logger="selfcal.service.postgres"):
+            store.open()
+        try:
+            assert time.monotonic() - t0 < 15
+            assert "lz4 compression not set" in caplog.text
+            assert not _ingest(store, "dev-l", 0).result(timeout=30).duplicate
+        finally:
+            store.close()
+        with psycopg.connect(url, autocommit=True) as conn:
+            assert _compression(conn) == {col: "p" for col in LZ4}  # unchanged
+    finally:
+        reader.close()
+    store = PostgresStore(url)
+    store.open()
+    store.close()
+    with psycopg.connect(url, autocommit=True) as conn:
+        assert _compression(conn) == LZ4
