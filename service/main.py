@@ -13,6 +13,7 @@ import datetime as _dt
 import gzip
 import hashlib
 import logging
+import re
 import sys
 import time
 from contextlib import asynccontextmanager
@@ -35,6 +36,7 @@ from selfcal_service.metrics import Metrics
 from selfcal_service.schemas import (
     BINARY_MEDIA_TYPE,
     DEVICE_ID_PATTERN,
+    Batch,
     BatchAck,
     CalibrationOut,
     DeviceOut,
@@ -118,6 +120,21 @@ async def _current_or_404(store, device_id: str):
     if found is None:
         raise FieldError("device_id", f"unknown device {device_id!r}", 404)
     return found
+
+
+_DEVICE_ID_RE = re.compile(DEVICE_ID_PATTERN)
+
+
+def _replay(messages: list, receive):
+    """An ASGI ``receive`` that gives ``messages`` (already received) again, then ``receive``'s."""
+    pending = list(messages)
+
+    async def replayed():
+        if pending:
+            return pending.pop(0)
+        return await receive()
+
+    return replayed
 
 
 def _model(obj: BaseModel, status: int = 200) -> Response:
@@ -570,6 +587,122 @@ def create_app(
                     code=f"{status[0] // 100}xx",
                 )
 
+    hot_routes: dict[str, Any] = {}  # method -> the APIRoute it stands for (filled once the routes exist)
+
+    class _HotRoutes:
+        """The two requests a fleet sends all day, answered without FastAPI's routing,
+        dependency solving and parameter validation, which were ~45 % of an API process's
+        CPU at fleet load (py-spy under bench/request_cost.py): ``POST
+        /devices/{id}/samples`` with a binary batch and ``GET /devices/{id}/calibration``.
+
+        Only the plain case is answered here, by the route's own code (:func:`ingest`,
+        :func:`calibration_out`, the same Response): a request it would not answer exactly
+        as the route does (no key or a key without the scope, an id the pattern refuses, an
+        unknown device, a body over the limit or that does not decode, JSON, a client gone)
+        is handed to the app unchanged, its body replayed, so every such answer is the
+        route's. An exception once the batch went to the store is answered by the app's
+        own handler for it, as the route's would be.
+        """
+
+        def __init__(self, inner):
+            self.inner = inner
+
+        async def __call__(self, scope, receive, send):
+            if scope["type"] == "http" and hot_routes:
+                method, path = scope["method"], scope["path"]
+                if method == "GET" and path.endswith("/calibration"):
+                    if await self._get(scope, receive, send):
+                        return
+                elif method == "POST" and path.endswith("/samples"):
+                    done, receive = await self._post(scope, receive, send)
+                    if done:
+                        return
+            await self.inner(scope, receive, send)
+
+        @staticmethod
+        def _device(path: str, suffix: str) -> str | None:
+            """The device id of ``/devices/{id}{suffix}`` when the route's pattern takes it."""
+            if not path.startswith("/devices/"):
+                return None
+            device_id = path[len("/devices/"): -len(suffix)]
+            return device_id if _DEVICE_ID_RE.fullmatch(device_id) else None
+
+        @staticmethod
+        def _authorized(scope, scope_name: str) -> bool:
+            authorization = next((v.decode("latin-1") for k, v in scope["headers"] if k == b"authorization"), None)
+            try:
+                keys.check(authorization, scope_name)
+            except AuthError:
+                return False
+            return True
+
+        async def _answer_error(self, exc: Exception, scope, receive, send) -> bool:
+            """The app's handler's answer to ``exc`` (False: none for its type)."""
+            for cls in type(exc).__mro__:
+                handler = app.exception_handlers.get(cls)
+                if handler is not None and cls is not Exception:
+                    response = await handler(Request(scope, receive), exc)
+                    await response(scope, receive, send)
+                    return True
+            return False
+
+        async def _get(self, scope, receive, send) -> bool:
+            device_id = self._device(scope["path"], "/calibration")
+            if device_id is None or not self._authorized(scope, "read"):
+                return False
+            store = app.state.store
+            try:
+                found = await _read(store, store.current, device_id)
+            except Exception as exc:  # noqa: BLE001 - the app's answer to it, or the route's own
+                scope["route"] = hot_routes["GET"]
+                return await self._answer_error(exc, scope, receive, send)
+            if found is None:
+                return False  # the route's 404
+            scope["route"] = hot_routes["GET"]
+            await _model(calibration_out(device_id, *found))(scope, receive, send)
+            return True
+
+        async def _post(self, scope, receive, send):
+            device_id = self._device(scope["path"], "/samples")
+            if device_id is None:
+                return False, receive
+            headers = scope["headers"]
+            ctype = next((v.decode("latin-1") for k, v in headers if k == b"content-type"), "application/json")
+            if ctype.split(";")[0].strip().lower() != BINARY_MEDIA_TYPE or not self._authorized(scope, "ingest"):
+                return False, receive
+            limit = settings.max_body_bytes
+            declared = next((v for k, v in headers if k == b"content-length"), None)
+            if declared is not None and (not declared.isdigit() or int(declared) > limit):
+                return False, receive
+            messages, chunks, size = [], [], 0
+            while True:
+                message = await receive()
+                messages.append(message)
+                if message["type"] != "http.request":
+                    return False, _replay(messages, receive)  # a client gone: the route's answer
+                chunk = message.get("body", b"")
+                size += len(chunk)
+                if size > limit:
+                    return False, _replay(messages, receive)
+                chunks.append(chunk)
+                if not message.get("more_body", False):
+                    break
+            body = b"".join(chunks)
+            try:
+                batch = decode_binary(body)
+            except FieldError:
+                return False, _replay(messages, receive)
+            scope["route"] = hot_routes["POST"]
+            try:
+                response = await ingest(device_id, batch, canonical_binary(body), app.state.store, app.state.worker)
+            except Exception as exc:  # noqa: BLE001 - answered as the route's would be
+                if not await self._answer_error(exc, scope, receive, send):
+                    raise
+                return True, receive
+            await response(scope, receive, send)
+            return True, receive
+
+    app.add_middleware(_HotRoutes)
     app.add_middleware(_Timing)
 
     # ------------------------------------------------------------ routes
@@ -597,6 +730,11 @@ def create_app(
             payload = batch.to_bytes()
         else:
             raise FieldError("Content-Type", f"expected application/json or {BINARY_MEDIA_TYPE}", 415)
+        return await ingest(device_id, batch, payload, store, worker)
+
+    async def ingest(device_id: str, batch: Batch, payload: bytes, store: Storage, worker: RefitWorker) -> Response:
+        """A decoded batch checked, stored (durably) and acknowledged: the route's work after
+        the body, shared with the hot path (:class:`_HotRoutes`)."""
         check_batch(
             batch,
             max_samples=settings.max_batch_samples,
@@ -877,6 +1015,15 @@ def create_app(
     from selfcal_service.dashboard import add_dashboard_routes
 
     add_dashboard_routes(app)
+    from fastapi.routing import APIRoute
+
+    for route in app.routes:
+        if isinstance(route, APIRoute) and route.path == "/devices/{device_id}/samples" and "POST" in route.methods:
+            hot_routes["POST"] = route
+        if isinstance(route, APIRoute) and route.path == "/devices/{device_id}/calibration" and "GET" in route.methods:
+            hot_routes["GET"] = route
+    if not settings.hot_routes or len(hot_routes) != 2:
+        hot_routes.clear()  # every request through the app's routing
     return app
 
 

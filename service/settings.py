@@ -43,6 +43,9 @@ class Settings(BaseModel):
     )
     group_commit_max_ops: int = Field(512, ge=1, description="writes per SQLite transaction")
     worker_threads: int = Field(1, ge=1, le=64, description="refit workers (devices sharded)")
+    hot_routes: bool = Field(
+        True, description="answer a binary batch POST and a calibration GET without FastAPI's routing layers "
+                          "(the same answers, about half the CPU); false: every request through the app's routes")
     worker_process_threads: int = Field(
         4, ge=1, le=64,
         description="refit threads of each `selfcal worker` process (PostgreSQL; `--threads`): a cycle waits for its "
