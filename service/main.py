@@ -125,13 +125,18 @@ async def _current_or_404(store, device_id: str):
 _DEVICE_ID_RE = re.compile(DEVICE_ID_PATTERN)
 
 
-def _replay(messages: list, receive):
-    """An ASGI ``receive`` that gives ``messages`` (already received) again, then ``receive``'s."""
-    pending = list(messages)
+def _replay(chunks: list[bytes], finished: bool, last: dict | None, receive):
+    """An ASGI ``receive`` that gives again what was received of a body: ``chunks`` in one
+    message (``finished``: the whole body), then ``last`` (a message that was not body, as
+    a disconnect), then ``receive``'s own messages."""
+    pending = [{"type": "http.request", "body": b"".join(chunks), "more_body": not finished}]
+    if last is not None:
+        pending.append(last)
+    pending.reverse()
 
     async def replayed():
         if pending:
-            return pending.pop(0)
+            return pending.pop()
         return await receive()
 
     return replayed
@@ -596,12 +601,13 @@ def create_app(
         /devices/{id}/samples`` with a binary batch and ``GET /devices/{id}/calibration``.
 
         Only the plain case is answered here, by the route's own code (:func:`ingest`,
-        :func:`calibration_out`, the same Response): a request it would not answer exactly
-        as the route does (no key or a key without the scope, an id the pattern refuses, an
-        unknown device, a body over the limit or that does not decode, JSON, a client gone)
-        is handed to the app unchanged, its body replayed, so every such answer is the
-        route's. An exception once the batch went to the store is answered by the app's
-        own handler for it, as the route's would be.
+        :func:`_current_or_404`, :func:`calibration_out`, the same Response): a request it
+        would not answer exactly as the route does (no key or a key without the scope, an
+        id the pattern refuses, a body over the limit or that does not decode, JSON, a
+        client gone) is handed to the app unchanged, what it read of the body replayed in
+        one message, so every such answer is the route's. An exception from the store (an
+        unknown device's 404 included) is answered by the app's own handler for it, as
+        the route's would be, or left to the timing middleware's 500 if it has none.
         """
 
         def __init__(self, inner):
@@ -650,15 +656,13 @@ def create_app(
             device_id = self._device(scope["path"], "/calibration")
             if device_id is None or not self._authorized(scope, "read"):
                 return False
-            store = app.state.store
-            try:
-                found = await _read(store, store.current, device_id)
-            except Exception as exc:  # noqa: BLE001 - the app's answer to it, or the route's own
-                scope["route"] = hot_routes["GET"]
-                return await self._answer_error(exc, scope, receive, send)
-            if found is None:
-                return False  # the route's 404
             scope["route"] = hot_routes["GET"]
+            try:
+                found = await _current_or_404(app.state.store, device_id)
+            except Exception as exc:  # noqa: BLE001 - the app's handler's answer (an unknown device's 404 too)
+                if not await self._answer_error(exc, scope, receive, send):
+                    raise  # no handler: the 500 of the timing middleware, as from the route
+                return True
             await _model(calibration_out(device_id, *found))(scope, receive, send)
             return True
 
@@ -672,26 +676,25 @@ def create_app(
                 return False, receive
             limit = settings.max_body_bytes
             declared = next((v for k, v in headers if k == b"content-length"), None)
-            if declared is not None and (not declared.isdigit() or int(declared) > limit):
+            if declared is not None and (not declared.isdigit() or len(declared) > 18 or int(declared) > limit):
                 return False, receive
-            messages, chunks, size = [], [], 0
+            chunks, size = [], 0
             while True:
                 message = await receive()
-                messages.append(message)
                 if message["type"] != "http.request":
-                    return False, _replay(messages, receive)  # a client gone: the route's answer
+                    return False, _replay(chunks, False, message, receive)  # a client gone: the route's answer
                 chunk = message.get("body", b"")
                 size += len(chunk)
-                if size > limit:
-                    return False, _replay(messages, receive)
                 chunks.append(chunk)
+                if size > limit:
+                    return False, _replay(chunks, not message.get("more_body", False), None, receive)
                 if not message.get("more_body", False):
                     break
             body = b"".join(chunks)
             try:
                 batch = decode_binary(body)
             except FieldError:
-                return False, _replay(messages, receive)
+                return False, _replay([body], True, None, receive)
             scope["route"] = hot_routes["POST"]
             try:
                 response = await ingest(device_id, batch, canonical_binary(body), app.state.store, app.state.worker)
