@@ -244,6 +244,7 @@ class RefitWorker:
         self.cycles = 0
         self.conflicts = 0  # cycles dropped because another writer changed the device
         self._wanted: "OrderedDict[str, None]" = OrderedDict()  # ingested here: lease these first
+        self._leasing = False  # the lease thread holds devices taken from _wanted, not yet queued
         self._lease_cond = threading.Condition()
         self._lease_thread: threading.Thread | None = None
         self._leased: set[str] = set()
@@ -300,7 +301,11 @@ class RefitWorker:
         return sum(len(s.pending) for s in self._shards)
 
     def idle(self) -> bool:
-        return self.queue_depth() == 0 and self.busy == 0 and not self._held
+        """Nothing this worker was given is left to do: no device waiting for its lease (or
+        being leased), queued, in a cycle or held."""
+        with self._lease_cond:  # read first: a device leased after this is queued before _leasing clears
+            leasing = bool(self._wanted) or self._leasing
+        return not leasing and self.queue_depth() == 0 and self.busy == 0 and not self._held
 
     def notify(self, device_id: str) -> None:
         """A device has new committed batches (cheap; called from the event loop)."""
@@ -862,40 +867,45 @@ class RefitWorker:
                 if not self._wanted:
                     self._lease_cond.wait(timeout=lease.poll_s)
                 wanted = list(dict.fromkeys([*deferred, *self._wanted]))
+                self._leasing = bool(self._wanted)  # (deferred ones wait for room: not counted)
                 self._wanted.clear()
-            if self._stop.is_set():
-                return
             try:
-                now = time.monotonic()
-                if now - last_renew >= lease.ttl_s / 3:
-                    # the heartbeat renews every lease this worker holds
-                    workers, leased, waiting = self.store.heartbeat(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
-                    self._share = max(1, math.ceil((leased + waiting) / max(1, workers)))
-                    self._waiting = waiting
-                    self._workers = workers
-                    last_renew = now
-                room = min(lease.max_devices, self._share) - len(self._leased)
-                if room <= 0:
-                    room = 0 if self._leased else 1  # (a worker holding nothing always takes one)
-                got = [] if room == 0 else self.store.acquire_leases(  # type: ignore[attr-defined]
-                    lease.owner, lease.ttl_s, room, prefer=wanted, workers=self._workers)
-                # no room now: the devices ingested here stay preferred at the next pass
-                deferred = [d for d in wanted if d not in self._leased][-lease.max_devices:] if room == 0 else []
-            except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
-                log.warning("leases: %s", exc)
-                self._stop.wait(lease.poll_s)
-                continue
-            for device_id in got:
-                self._leased.add(device_id)
-                self._enqueue(device_id)
-            for device_id in wanted:  # new batches for a device we already hold: look again
-                if device_id in self._leased and device_id not in got:
+                if self._stop.is_set():
+                    return
+                try:
+                    now = time.monotonic()
+                    if now - last_renew >= lease.ttl_s / 3:
+                        # the heartbeat renews every lease this worker holds
+                        workers, leased, waiting = self.store.heartbeat(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
+                        self._share = max(1, math.ceil((leased + waiting) / max(1, workers)))
+                        self._waiting = waiting
+                        self._workers = workers
+                        last_renew = now
+                    room = min(lease.max_devices, self._share) - len(self._leased)
+                    if room <= 0:
+                        room = 0 if self._leased else 1  # (a worker holding nothing always takes one)
+                    got = [] if room == 0 else self.store.acquire_leases(  # type: ignore[attr-defined]
+                        lease.owner, lease.ttl_s, room, prefer=wanted, workers=self._workers)
+                    # no room now: the devices ingested here stay preferred at the next pass
+                    deferred = [d for d in wanted if d not in self._leased][-lease.max_devices:] if room == 0 else []
+                except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
+                    log.warning("leases: %s", exc)
+                    self._stop.wait(lease.poll_s)
+                    continue
+                for device_id in got:
+                    self._leased.add(device_id)
                     self._enqueue(device_id)
-            try:
-                self._keep_or_release_idle(lease)
-            except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
-                log.warning("leases: %s", exc)
-                self._stop.wait(lease.poll_s)
+                for device_id in wanted:  # new batches for a device we already hold: look again
+                    if device_id in self._leased and device_id not in got:
+                        self._enqueue(device_id)
+                try:
+                    self._keep_or_release_idle(lease)
+                except Exception as exc:  # noqa: BLE001 - storage down: wait and retry
+                    log.warning("leases: %s", exc)
+                    self._stop.wait(lease.poll_s)
+            finally:
+                with self._lease_cond:
+                    self._leasing = False  # what it leased is queued by now
 
     def _keep_cap(self) -> int:
         """Devices this worker may keep leased between batches: its share of the fleet's

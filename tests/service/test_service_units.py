@@ -432,3 +432,18 @@ def test_sqlite_checkpoint_patches_have_their_own_table_and_the_same_guards():
     assert conn.execute("SELECT COUNT(*) FROM checkpoint_patches").fetchone()[0] == 0
     with pytest.raises(ValueError):
         write(conn, "d", 9, '{"b": 9}', {}, 0.0, patch="P9", patch_base="x")  # both
+
+
+def test_a_worker_waiting_to_lease_a_device_is_not_idle():
+    """idle() counts the devices an ingest handed to the lease thread (not yet leased nor
+    queued), and the pass that is leasing them: a test or a drain that waits for idle()
+    does not stop before the cycle of a device just ingested."""
+    w = _planner(10.0)
+    assert w.idle()
+    w._wanted["d1"] = None  # notify() with leases: for the lease thread
+    assert not w.idle()
+    w._wanted.clear()
+    w._leasing = True  # the lease thread took it and is leasing it
+    assert not w.idle()
+    w._leasing = False
+    assert w.idle()
