@@ -263,8 +263,19 @@ async def _read_body(request: Request, limit: int) -> bytes:
     return b"".join(chunks)
 
 
+def _media_type(content_type: str) -> str:
+    """The media type of a Content-Type value, parameters left out, lower case."""
+    return content_type.split(";")[0].strip().lower()
+
+
 def _content_type(request: Request) -> str:
-    return request.headers.get("content-type", "application/json").split(";")[0].strip().lower()
+    return _media_type(request.headers.get("content-type", "application/json"))
+
+
+def _header(scope, name: bytes) -> bytes | None:
+    """The first value of the header ``name`` (lower case) of an ASGI ``scope``, as a
+    Request's ``headers.get`` gives it (undecoded), or None."""
+    return next((v for k, v in scope["headers"] if k == name), None)
 
 
 async def _json_body(request: Request, model: type[BaseModel], limit: int) -> BaseModel:
@@ -635,9 +646,9 @@ def create_app(
 
         @staticmethod
         def _authorized(scope, scope_name: str) -> bool:
-            authorization = next((v.decode("latin-1") for k, v in scope["headers"] if k == b"authorization"), None)
+            authorization = _header(scope, b"authorization")
             try:
-                keys.check(authorization, scope_name)
+                keys.check(None if authorization is None else authorization.decode("latin-1"), scope_name)
             except AuthError:
                 return False
             return True
@@ -670,12 +681,12 @@ def create_app(
             device_id = self._device(scope["path"], "/samples")
             if device_id is None:
                 return False, receive
-            headers = scope["headers"]
-            ctype = next((v.decode("latin-1") for k, v in headers if k == b"content-type"), "application/json")
-            if ctype.split(";")[0].strip().lower() != BINARY_MEDIA_TYPE or not self._authorized(scope, "ingest"):
+            ctype = _header(scope, b"content-type")
+            ctype = "application/json" if ctype is None else ctype.decode("latin-1")
+            if _media_type(ctype) != BINARY_MEDIA_TYPE or not self._authorized(scope, "ingest"):
                 return False, receive
             limit = settings.max_body_bytes
-            declared = next((v for k, v in headers if k == b"content-length"), None)
+            declared = _header(scope, b"content-length")
             if declared is not None and (not declared.isdigit() or len(declared) > 18 or int(declared) > limit):
                 return False, receive
             chunks, size = [], 0
