@@ -114,9 +114,17 @@ async def _read(store: Storage, fn, *args):
     return fn(*args)
 
 
+async def _current(store, device_id: str):
+    """The device's (device row, served version), or None: read in the event loop where the
+    store can (PostgreSQL's ``async_reads``, service/pg_async.py), else as :func:`_read`."""
+    if getattr(store, "async_reads", False):
+        return await store.current_async(device_id)
+    return await _read(store, store.current, device_id)
+
+
 async def _current_or_404(store, device_id: str):
     """The device's (device row, current version), or a 404 naming the device."""
-    found = await _read(store, store.current, device_id)
+    found = await _current(store, device_id)
     if found is None:
         raise FieldError("device_id", f"unknown device {device_id!r}", 404)
     return found
@@ -350,7 +358,8 @@ def open_store(settings: Settings) -> Storage:
     from selfcal_service.pg_store import PostgresStore, is_postgres_url
 
     if is_postgres_url(settings.db_path):
-        return PostgresStore(settings.db_path, group_commit_max_ops=settings.group_commit_max_ops)
+        return PostgresStore(settings.db_path, group_commit_max_ops=settings.group_commit_max_ops,
+                             async_reads=settings.pg_async_reads)
     path = settings.db_path.removeprefix("sqlite:///") if settings.db_path.startswith("sqlite:///") else settings.db_path
     return SQLiteStore(path, synchronous=settings.sqlite_synchronous,
                        group_commit_max_ops=settings.group_commit_max_ops)
@@ -487,6 +496,8 @@ def create_app(
                 gc.unfreeze()  # back to the collector (tests run many apps in one process)
             if settings.refit_in_process:
                 worker.stop()
+            if hasattr(st, "close_async_reads"):
+                await st.close_async_reads()  # this loop's connections, in this loop
             st.close()
 
     app = FastAPI(
@@ -818,7 +829,7 @@ def create_app(
         )
         seed = {"params": body.params, "std": body.std, "matrix": body.matrix, "offset": body.offset}
         await _admin_publish(worker, device_id, version, seed)
-        dev, ver = await _read(store, store.current, device_id)
+        dev, ver = await _current(store, device_id)
         return _model(calibration_out(device_id, dev, ver))
 
     @app.get(
@@ -870,7 +881,7 @@ def create_app(
         seed = {"params": old.calibration.get("params"), "std": old.calibration.get("std"),
                 "matrix": old.calibration.get("matrix"), "offset": old.calibration.get("offset")}
         await _admin_publish(worker, device_id, version, seed)
-        dev, ver = await _read(store, store.current, device_id)
+        dev, ver = await _current(store, device_id)
         return _model(calibration_out(device_id, dev, ver))
 
     @app.get(

@@ -32,6 +32,7 @@ from concurrent.futures import Future
 from typing import Any
 
 from selfcal_service.group_commit import GroupCommitStore
+from selfcal_service.pg_async import AsyncReaders
 from selfcal_service.storage import (
     DEVICE_COLUMNS,
     REFUSAL_COLUMNS,
@@ -359,6 +360,19 @@ _LOAD_COLS_STATE = ", ".join("c.base" if c == "calibrator_state" else f"d.{c}" f
 _CKPT_SQL = ", c.device_id IS NOT NULL, c.seq, c.feed_state{} FROM devices d LEFT JOIN checkpoints c " \
             "ON c.device_id = d.device_id WHERE d.device_id = %s"
 _N = len(_COLS)
+# the read routes' device row and served version, one round trip
+_CURRENT_SQL = (f"SELECT {_DEVICE_READ_COLS}, v.version, v.status, v.source, v.created_at, v.calibration, "
+                "v.provenance FROM devices d LEFT JOIN versions v "
+                "ON v.device_id = d.device_id AND v.version = d.current_version WHERE d.device_id = %s")
+
+
+def _current_from_rows(rows: list[tuple]) -> tuple[DeviceRecord, VersionRecord | None] | None:
+    if not rows:
+        return None
+    row = rows[0]
+    return device_from_row(row[:_N]), (version_from_row(row[_N:]) if row[_N] is not None else None)
+
+
 # a worker cycle's read: the device row (no state) and its first pending batches, one row
 # a batch (at least one row); the device's columns are NULL after the first row
 _CYCLE_SQL = (
@@ -399,30 +413,37 @@ class PostgresStore(GroupCommitStore):
     """PostgreSQL storage: group-committing writer, a small pool of reader connections, leases."""
 
     blocking_reads = True  # reads wait on a server: the routes call them in a thread
+    # ... except :meth:`current_async`, which waits on its socket in the event loop
+    # (``async_reads``; service/pg_async.py)
 
     def __init__(self, url: str, *, group_commit_max_ops: int = 512, connect_timeout_s: float = 5.0,
-                 statement_timeout_s: float = 30.0, max_idle_readers: int = 8):
+                 statement_timeout_s: float = 30.0, max_idle_readers: int = 8, async_reads: bool = True):
         super().__init__(group_commit_max_ops)
         self.url = url
         self.connect_timeout_s = connect_timeout_s
         self.statement_timeout_s = statement_timeout_s
         self.max_idle_readers = max_idle_readers
+        self.async_reads = async_reads
         self._idle: list[Any] = []  # reader connections not in use (a small pool)
         self._conns: list[Any] = []
         self._conns_lock = threading.Lock()
+        self._aio: dict[int, tuple[Any, AsyncReaders]] = {}  # id(event loop) -> (loop, its readers)
 
     # ------------------------------------------------------------ connections
-    def _connect(self) -> Any:
-        import psycopg
-
+    def _connect_kwargs(self) -> dict[str, Any]:
+        """psycopg's ``connect`` arguments for a reader or the writer (sync or async)."""
         # keepalives and tcp_user_timeout: a partitioned database host fails a call in
         # seconds, not after the kernel's 15-minute TCP timeout; statement_timeout bounds
         # any one statement (a lock wait included)
-        conn = psycopg.connect(
-            self.url, autocommit=True, connect_timeout=int(max(1, self.connect_timeout_s)),
-            keepalives=1, keepalives_idle=5, keepalives_interval=2, keepalives_count=3,
-            tcp_user_timeout=int(1000 * max(1.0, self.connect_timeout_s)),
-            options=f"-c statement_timeout={int(1000 * self.statement_timeout_s)}")
+        return dict(conninfo=self.url, autocommit=True, connect_timeout=int(max(1, self.connect_timeout_s)),
+                    keepalives=1, keepalives_idle=5, keepalives_interval=2, keepalives_count=3,
+                    tcp_user_timeout=int(1000 * max(1.0, self.connect_timeout_s)),
+                    options=f"-c statement_timeout={int(1000 * self.statement_timeout_s)}")
+
+    def _connect(self) -> Any:
+        import psycopg
+
+        conn = psycopg.connect(**self._connect_kwargs())
         with self._conns_lock:
             self._conns.append(conn)
         return conn
@@ -437,14 +458,15 @@ class PostgresStore(GroupCommitStore):
                 self._conns.remove(conn)
 
     def _read(self, sql: str, params: tuple | dict = ()) -> list[tuple]:
-        """Run one statement on a pooled reader connection; a broken one is replaced once."""
+        """Run one statement on a pooled reader connection; a broken one is replaced once, by
+        a new connection (a restarted server broke the idle ones too)."""
         import psycopg
 
         from selfcal_service.storage import StorageUnavailable
 
         for attempt in (0, 1):
             with self._conns_lock:
-                conn = self._idle.pop() if self._idle else None
+                conn = self._idle.pop() if self._idle and not attempt else None
             try:
                 if conn is None:
                     conn = self._connect()
@@ -455,6 +477,10 @@ class PostgresStore(GroupCommitStore):
                 broken = conn is None or conn.broken or conn.closed
                 if attempt or not broken:  # a timeout or deadlock is not retried
                     raise StorageUnavailable(f"database read failed: {type(exc).__name__}: {exc}") from None
+                with self._conns_lock:  # a restarted server broke them all: retry on a new one
+                    stale, self._idle = self._idle, []
+                for c in stale:
+                    self._drop(c)
                 continue
             except BaseException:
                 self._drop(conn)
@@ -550,6 +576,9 @@ class PostgresStore(GroupCommitStore):
     def close(self) -> None:
         self._stop_writer()
         with self._conns_lock:
+            for _, readers in self._aio.values():
+                readers.close()
+            self._aio.clear()
             for conn in self._conns:
                 try:
                     conn.close()
@@ -823,15 +852,34 @@ class PostgresStore(GroupCommitStore):
 
     # ------------------------------------------------------------ reads
     def current(self, device_id: str) -> tuple[DeviceRecord, VersionRecord | None] | None:
-        rows = self._read(
-            f"SELECT {_DEVICE_READ_COLS}, v.version, v.status, v.source, v.created_at, v.calibration, "
-            "v.provenance FROM devices d LEFT JOIN versions v "
-            "ON v.device_id = d.device_id AND v.version = d.current_version WHERE d.device_id = %s",
-            (device_id,))
-        if not rows:
-            return None
-        row = rows[0]
-        return device_from_row(row[:_N]), (version_from_row(row[_N:]) if row[_N] is not None else None)
+        return _current_from_rows(self._read(_CURRENT_SQL, (device_id,)))
+
+    async def current_async(self, device_id: str) -> tuple[DeviceRecord, VersionRecord | None] | None:
+        """:meth:`current`, waiting on the database in the running event loop (no thread)."""
+        return _current_from_rows(await self._async_readers().read(_CURRENT_SQL, (device_id,)))
+
+    def _async_readers(self) -> AsyncReaders:
+        """The running event loop's readers (made at its first read; a closed loop's go)."""
+        import asyncio
+
+        loop = asyncio.get_running_loop()
+        entry = self._aio.get(id(loop))
+        if entry is None or entry[0] is not loop:
+            with self._conns_lock:
+                for key in [k for k, (lp, _) in self._aio.items() if lp.is_closed() or lp is loop]:
+                    self._aio.pop(key)[1].close()
+                entry = self._aio[id(loop)] = (loop, AsyncReaders(self._connect_kwargs, self.max_idle_readers))
+        return entry[1]
+
+    async def close_async_reads(self) -> None:
+        """Close the running event loop's reader connections (an app's shutdown, in its loop)."""
+        import asyncio
+
+        loop = asyncio.get_running_loop()
+        with self._conns_lock:
+            entry = self._aio.pop(id(loop), None)
+        if entry is not None:
+            entry[1].close()
 
     def history(self, device_id: str) -> list[VersionRecord]:
         rows = self._read(f"SELECT {VERSION_COLUMNS} FROM versions WHERE device_id = %s ORDER BY version",

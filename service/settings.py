@@ -117,6 +117,10 @@ class Settings(BaseModel):
     gil_switch_interval_s: float = Field(
         0.001, gt=0, le=0.1, description="sys.setswitchinterval: refit threads yield the GIL to requests sooner"
     )
+    pg_async_reads: bool = Field(
+        True, description="PostgreSQL: GET /devices/{id}/calibration (and the routes that read the served "
+                          "version) waits on the database in the event loop, not in a thread (service/pg_async.py)"
+    )
     gc_freeze: bool = Field(
         True, description="gc.freeze() once the app is up: what was imported and built at start leaves the cyclic "
                           "collector's full scans (each stalls every request; docs/service.md)"

@@ -373,3 +373,128 @@ def test_a_start_does_not_wait_on_a_long_reader_to_set_lz4(tmp_path, caplog):
     store.close()
     with psycopg.connect(url, autocommit=True) as conn:
         assert _compression(conn) == LZ4
+
+
+def _backends(url: str) -> int:
+    """Sessions open on ``url``'s database, this one's aside."""
+    import psycopg
+
+    with psycopg.connect(url, autocommit=True) as conn:
+        return conn.execute("SELECT count(*) FROM pg_stat_activity WHERE datname = current_database() "
+                            "AND pid <> pg_backend_pid()").fetchone()[0]
+
+
+def test_a_read_on_the_event_loop_answers_as_a_read_in_a_thread(two_stores):
+    """``current_async`` (the GET route's read, in the event loop) returns what ``current``
+    does: an unknown device, a device with batches only, one with a served version."""
+    import asyncio
+
+    a, _ = two_stores
+    _ingest(a, "dev-2", 0).result(timeout=30)
+    _ingest(a, "dev-3", 0).result(timeout=30)
+    assert a.acquire_leases("worker-a", 30.0, 10) == ["dev-2", "dev-3"]
+    a.commit_progress(_progress(a.load_device("dev-2"), lease_owner="worker-a")).result(timeout=30)
+
+    async def reads():
+        return [await a.current_async(d) for d in ("dev-2", "dev-3", "nobody")]
+
+    got = asyncio.run(reads())
+    assert got == [a.current("dev-2"), a.current("dev-3"), None]
+    assert got[0][1].version == 1 and got[1][1] is None and got[1][0].batches_stored == 1
+
+
+def test_event_loop_reads_bound_their_connections_and_replace_a_broken_one(tmp_path):
+    """At most ``limit`` connections however many reads wait; a cancelled read's connection
+    is closed (it was mid-statement); a connection the server killed is replaced once; a
+    server that does not answer is StorageUnavailable; a closed pool refuses, and the store's
+    close() closes what a finished loop left open."""
+    import asyncio
+
+    import psycopg
+
+    from selfcal_service.pg_async import AsyncReaders
+    from selfcal_service.storage import StorageUnavailable
+
+    url = backend_db(tmp_path / "pg-async.db")
+    store = PostgresStore(url, max_idle_readers=3)
+    store.open()
+    kwargs = store._connect_kwargs
+
+    async def scenario():
+        readers = AsyncReaders(kwargs, limit=3)
+        peak = 0
+
+        async def one(i):
+            nonlocal peak
+            rows = await readers.read("SELECT %s::int, pg_sleep(0.02)", (i,))
+            peak = max(peak, readers.connections)
+            return rows[0][0]
+
+        assert sorted(await asyncio.gather(*(one(i) for i in range(30)))) == list(range(30))
+        assert peak <= 3 and readers.connections <= 3
+        assert await asyncio.to_thread(_backends, url) >= readers.connections
+        before = readers.connections
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(readers.read("SELECT pg_sleep(5)"), 0.3)
+        assert readers.connections == before - 1  # the cancelled read's connection is gone
+        # the server ends every idle session of the pool: the next read reconnects once
+        with psycopg.connect(url, autocommit=True) as conn:
+            conn.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = "
+                         "current_database() AND pid <> pg_backend_pid()")
+        await asyncio.sleep(0.2)
+        assert readers.connections >= 1  # dead, and the pool does not know yet
+        assert (await readers.read("SELECT 41 + 1"))[0][0] == 42
+        assert readers.connections == 1  # the others went with the broken one
+        with pytest.raises(StorageUnavailable, match="read failed"):  # a statement the server ends
+            await readers.read("SELECT pg_terminate_backend(pg_backend_pid())")
+        readers.close()
+        assert readers.connections == 0
+        with pytest.raises(StorageUnavailable, match="closed"):
+            await readers.read("SELECT 1")
+        dead = AsyncReaders(lambda: dict(kwargs(), conninfo=f"postgresql://selfcal@127.0.0.1:{_free_port()}/x"))
+        with pytest.raises(StorageUnavailable, match="read failed"):
+            await dead.read("SELECT 1")
+        assert dead.connections == 0
+        # the store's own readers, left open when this loop ends
+        assert (await store.current_async("nobody")) is None
+
+    try:
+        asyncio.run(scenario())
+        assert _backends(url) >= 1  # the store's async reader is still connected
+        store.close()
+        deadline = time.monotonic() + 10
+        while _backends(url) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _backends(url) == 0
+    finally:
+        store.close()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_thread_read_after_the_server_ended_every_session_reconnects(tmp_path):
+    """The reader pool's idle connections all die together when the server restarts: the
+    read retries on a new connection, not on another dead one from the pool."""
+    import psycopg
+
+    url = backend_db(tmp_path / "pg-restart.db")
+    store = PostgresStore(url, max_idle_readers=4)
+    store.open()
+    try:
+        with cf.ThreadPoolExecutor(4) as pool:  # four idle readers in the pool
+            list(pool.map(lambda _: store._read("SELECT pg_sleep(0.1)"), range(4)))
+        assert len(store._idle) == 4
+        with psycopg.connect(url, autocommit=True) as conn:
+            conn.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = "
+                         "current_database() AND pid <> pg_backend_pid()")
+        time.sleep(0.2)
+        assert store.current("nobody") is None
+        assert len(store._idle) == 1
+    finally:
+        store.close()

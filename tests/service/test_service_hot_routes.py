@@ -158,7 +158,10 @@ def test_a_store_failure_on_the_hot_path_is_the_routes_503(tmp_path, hot):
         def down(*a, **k):
             raise StorageUnavailable("the database is down (test)")
 
-        store.submit_batch, store.current = down, down
+        async def down_async(*a, **k):
+            down()
+
+        store.submit_batch, store.current, store.current_async = down, down, down_async  # current_async: PostgreSQL's
         r = client.post("/devices/d1/samples", content=_binary(1), headers={**auth("ingest"), "Content-Type": BINARY})
         assert (r.status_code, r.json()["error"], r.headers["retry-after"]) == (503, "storage_unavailable", "5")
         r = client.get("/devices/d1/calibration", headers=auth("read"))
