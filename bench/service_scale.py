@@ -58,10 +58,11 @@ def metrics(port: int) -> dict[str, float]:
 
 def gc_pauses(m: dict[str, float]) -> dict:
     """The API processes' garbage-collector pauses so far, from a ``/metrics`` scrape ``m``:
-    per generation, ``(count, total s, count longer than 10 ms)``."""
+    per generation, ``(count, total s, count longer than 10 ms)`` (``role="api"``: the refit
+    workers' own pauses, labelled ``worker``, stall no request)."""
     out = {}
     for g in (0, 1, 2):
-        lab = f'generation="{g}"'
+        lab = f'generation="{g}",role="api"'
         n = m.get(f"selfcal_gc_pause_seconds_count{{{lab}}}", float("nan"))
         under = m.get(f'selfcal_gc_pause_seconds_bucket{{{lab},le="0.01"}}', float("nan"))
         out[g] = (n, m.get(f"selfcal_gc_pause_seconds_sum{{{lab}}}", float("nan")), n - under)

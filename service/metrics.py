@@ -79,8 +79,9 @@ class Metrics:
         "selfcal_http_timeouts_total": ("counter", "connections closed for a slow request head or body, by kind"),
         "selfcal_http_internal_errors_total": ("counter", "unexpected exceptions answered with 500"),
         "selfcal_http_request_duration_seconds": ("histogram", "request latency by route and status class"),
-        "selfcal_gc_pause_seconds": ("histogram", "pauses of the cyclic garbage collector by generation: every "
-                                                  "thread of the process waits (summed over the processes)"),
+        "selfcal_gc_pause_seconds": ("histogram", "pauses of the cyclic garbage collector by generation and role "
+                                                  "(api: a process that answers requests; worker: selfcal worker): "
+                                                  "every thread of the process waits (summed over the processes)"),
     }
 
     def __init__(self, shared_dir: str | Path | None = None) -> None:
@@ -97,9 +98,10 @@ class Metrics:
             self.shared_dir.mkdir(parents=True, exist_ok=True)
             threading.Thread(target=self._publish_loop, name="selfcal-metrics", daemon=True).start()
 
-    def track_gc(self) -> None:
+    def track_gc(self, role: str = "api") -> None:
         """Time every cyclic garbage collection of this process into ``selfcal_gc_pause_seconds``
-        (one histogram per generation). The callback runs inside whichever thread triggered
+        (one histogram per generation, labelled ``role``: ``api`` for a process that answers
+        requests, ``worker`` for ``selfcal worker``, whose pauses stall no request). The callback runs inside whichever thread triggered
         the collection, possibly while that thread holds this registry's lock, so it takes
         no lock: under the GIL an update can at worst lose a count to a concurrent one."""
         import gc
@@ -107,7 +109,7 @@ class Metrics:
         started = [0.0]
         hists = {g: [0.0] * (len(LATENCY_BUCKETS_S) + 2) for g in (0, 1, 2)}
         for g, h in hists.items():
-            self._hist[("selfcal_gc_pause_seconds", (("generation", str(g)),))] = h
+            self._hist[("selfcal_gc_pause_seconds", (("generation", str(g)), ("role", role)))] = h
 
         def on_gc(phase: str, info: dict) -> None:
             if phase == "start":

@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     tune_gc(settings)
-    metrics.track_gc()
+    metrics.track_gc(role="worker")  # its pauses apart from the API's in /metrics
     worker.start()
     print(f"selfcal worker {worker.lease.owner}: db={redact_url(settings.db_path)}, "
           f"threads={settings.worker_threads}, lease {settings.lease_ttl_s:g} s", file=sys.stderr, flush=True)

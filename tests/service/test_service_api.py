@@ -318,4 +318,4 @@ def test_metrics_prometheus_text(fake_server):
     assert values["selfcal_ingest_samples_total"] >= 20
     assert any(k.startswith("selfcal_http_request_duration_seconds_bucket") for k in values)
     assert any(k.startswith('selfcal_worker_queue_depth{pid="') for k in values)  # this process's own
-    assert values['selfcal_gc_pause_seconds_count{generation="0"}'] >= 1  # the collector's pauses are timed
+    assert values['selfcal_gc_pause_seconds_count{generation="0",role="api"}'] >= 1  # the collector's pauses are timed

@@ -374,9 +374,18 @@ def test_gc_pauses_are_timed_by_generation_and_the_callback_goes_away():
     assert len(gc.callbacks) == before
     counts = {line.split("{")[1].split("}")[0]: float(line.rpartition(" ")[2])
               for line in text.splitlines() if line.startswith("selfcal_gc_pause_seconds_count")}
-    assert counts['generation="2"'] >= 1
+    assert counts['generation="2",role="api"'] >= 1
     gc.collect()  # untracked: no more counts
-    assert m._hist[("selfcal_gc_pause_seconds", (("generation", "2"),))][-2] == counts['generation="2"']
+    key = ("selfcal_gc_pause_seconds", (("generation", "2"), ("role", "api")))
+    assert m._hist[key][-2] == counts['generation="2",role="api"']
+    w = Metrics()
+    w.track_gc(role="worker")  # a refit worker's pauses stall no request: apart from the API's
+    try:
+        gc.collect()
+    finally:
+        w.untrack_gc()
+    assert 'selfcal_gc_pause_seconds_count{generation="2",role="worker"}' in w.render()
+    assert 'role="api"' not in w.render()
 
 
 def test_tune_gc_freezes_what_exists_and_sets_the_young_threshold():
