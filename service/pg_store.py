@@ -32,7 +32,7 @@ from concurrent.futures import Future
 from typing import Any
 
 from selfcal_service.group_commit import GroupCommitStore
-from selfcal_service.pg_async import AsyncReaders
+from selfcal_service.pg_async import AsyncReaders, storage_errors
 from selfcal_service.storage import (
     DEVICE_COLUMNS,
     REFUSAL_COLUMNS,
@@ -404,6 +404,28 @@ _FLEET_SQL = fleet_select(lambda key: f"((v.calibration::jsonb) ->> '{key}')::do
                           lambda key: f"((v.calibration::jsonb) ->> '{key}')")  # the database's clock, seconds since the epoch
 
 
+def _close_in_loop(loop: Any, readers: AsyncReaders) -> None:
+    """Close an event loop's readers from any thread: in the loop itself while it runs
+    (a statement still running there closes its own connection when it ends), at once
+    once it ended (nothing runs on its connections any more)."""
+    import asyncio
+
+    try:
+        running = asyncio.get_running_loop()
+    except RuntimeError:
+        running = None
+    if loop.is_closed():
+        readers.close_all()
+    elif running is loop or not loop.is_running():
+        readers.close()
+    else:
+        readers.refuse()  # from now on (a flag); the idle connections are closed in the loop
+        try:
+            loop.call_soon_threadsafe(readers.close)
+        except RuntimeError:  # it closed meanwhile
+            readers.close_all()
+
+
 def is_postgres_url(db: str) -> bool:
     """True for ``postgresql://…`` / ``postgres://…`` (anything else is a SQLite path)."""
     return db.startswith(("postgresql://", "postgres://"))
@@ -428,6 +450,7 @@ class PostgresStore(GroupCommitStore):
         self._conns: list[Any] = []
         self._conns_lock = threading.Lock()
         self._aio: dict[int, tuple[Any, AsyncReaders]] = {}  # id(event loop) -> (loop, its readers)
+        self._reads_closed = False
 
     # ------------------------------------------------------------ connections
     def _connect_kwargs(self) -> dict[str, Any]:
@@ -460,22 +483,22 @@ class PostgresStore(GroupCommitStore):
     def _read(self, sql: str, params: tuple | dict = ()) -> list[tuple]:
         """Run one statement on a pooled reader connection; a broken one is replaced once, by
         a new connection (a restarted server broke the idle ones too)."""
-        import psycopg
-
         from selfcal_service.storage import StorageUnavailable
 
+        errors = storage_errors()
         for attempt in (0, 1):
             with self._conns_lock:
                 conn = self._idle.pop() if self._idle and not attempt else None
+            pooled = conn is not None
             try:
                 if conn is None:
                     conn = self._connect()
                 rows = conn.execute(sql, params).fetchall()
-            except (psycopg.OperationalError, psycopg.InterfaceError) as exc:
+            except errors as exc:
+                broken = conn is not None and (conn.broken or conn.closed)  # before closing it
                 if conn is not None:
                     self._drop(conn)  # never back into the pool
-                broken = conn is None or conn.broken or conn.closed
-                if attempt or not broken:  # a timeout or deadlock is not retried
+                if not (pooled and broken):  # a failed connect, a timeout or a deadlock is not retried
                     raise StorageUnavailable(f"database read failed: {type(exc).__name__}: {exc}") from None
                 with self._conns_lock:  # a restarted server broke them all: retry on a new one
                     stale, self._idle = self._idle, []
@@ -516,6 +539,7 @@ class PostgresStore(GroupCommitStore):
                      "ON CONFLICT (key) DO UPDATE SET value = EXCLUDED.value", (repr(time.time()),))
 
     def open(self) -> None:
+        self._reads_closed = False
         conn = self._connect()
         try:
             conn.execute("SELECT pg_advisory_lock(%s)", (_SCHEMA_LOCK,))
@@ -576,9 +600,11 @@ class PostgresStore(GroupCommitStore):
     def close(self) -> None:
         self._stop_writer()
         with self._conns_lock:
-            for _, readers in self._aio.values():
-                readers.close()
-            self._aio.clear()
+            self._reads_closed = True
+            pools, self._aio = list(self._aio.values()), {}
+        for loop, readers in pools:
+            _close_in_loop(loop, readers)
+        with self._conns_lock:
             for conn in self._conns:
                 try:
                     conn.close()
@@ -862,12 +888,17 @@ class PostgresStore(GroupCommitStore):
         """The running event loop's readers (made at its first read; a closed loop's go)."""
         import asyncio
 
+        from selfcal_service.storage import StorageUnavailable
+
         loop = asyncio.get_running_loop()
         entry = self._aio.get(id(loop))
         if entry is None or entry[0] is not loop:
             with self._conns_lock:
-                for key in [k for k, (lp, _) in self._aio.items() if lp.is_closed() or lp is loop]:
-                    self._aio.pop(key)[1].close()
+                if self._reads_closed:
+                    raise StorageUnavailable("the store is closed")
+                ended = [k for k, (lp, _) in self._aio.items() if lp.is_closed()]
+                for key in ended:  # loops that ended (a test's client): nothing runs on theirs
+                    self._aio.pop(key)[1].close_all()
                 entry = self._aio[id(loop)] = (loop, AsyncReaders(self._connect_kwargs, self.max_idle_readers))
         return entry[1]
 

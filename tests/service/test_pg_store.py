@@ -403,93 +403,215 @@ def test_a_read_on_the_event_loop_answers_as_a_read_in_a_thread(two_stores):
     assert got[0][1].version == 1 and got[1][1] is None and got[1][0].batches_stored == 1
 
 
+def _create(url):
+    """Create the schema on ``url`` (a store opened and closed)."""
+    store = PostgresStore(url)
+    store.open()
+    store.close()
+
+
+def _readers(url, limit=3, **kw):
+    """An AsyncReaders pool on ``url`` with the store's connection arguments (and ``kw``)."""
+    from selfcal_service.pg_async import AsyncReaders
+
+    base = PostgresStore(url)._connect_kwargs
+    return AsyncReaders(lambda: {**base(), **kw}, limit=limit)
+
+
 def test_event_loop_reads_bound_their_connections_and_replace_a_broken_one(tmp_path):
-    """At most ``limit`` connections however many reads wait; a cancelled read's connection
-    is closed (it was mid-statement); a connection the server killed is replaced once; a
-    server that does not answer is StorageUnavailable; a closed pool refuses, and the store's
-    close() closes what a finished loop left open."""
+    """At most ``limit`` connections however many reads wait; the idle connections a
+    restarted server broke are replaced by one new connection, once; a statement timeout
+    is not retried and leaves the other idle connections alone."""
     import asyncio
 
     import psycopg
 
-    from selfcal_service.pg_async import AsyncReaders
     from selfcal_service.storage import StorageUnavailable
 
     url = backend_db(tmp_path / "pg-async.db")
-    store = PostgresStore(url, max_idle_readers=3)
-    store.open()
-    kwargs = store._connect_kwargs
+    _create(url)
 
     async def scenario():
-        readers = AsyncReaders(kwargs, limit=3)
+        readers = _readers(url, limit=3, options="-c statement_timeout=1000")
         peak = 0
 
         async def one(i):
             nonlocal peak
-            rows = await readers.read("SELECT %s::int, pg_sleep(0.02)", (i,))
+            rows = await readers.read("SELECT %s::int, pg_sleep(0.05)", (i,))
             peak = max(peak, readers.connections)
             return rows[0][0]
 
         assert sorted(await asyncio.gather(*(one(i) for i in range(30)))) == list(range(30))
-        assert peak <= 3 and readers.connections <= 3
-        assert await asyncio.to_thread(_backends, url) >= readers.connections
-        before = readers.connections
-        with pytest.raises(TimeoutError):
-            await asyncio.wait_for(readers.read("SELECT pg_sleep(5)"), 0.3)
-        assert readers.connections == before - 1  # the cancelled read's connection is gone
-        # the server ends every idle session of the pool: the next read reconnects once
+        assert peak == 3 and readers.connections == 3
+        assert await asyncio.to_thread(_backends, url) == 3
+        idle = list(readers._idle)
+        t0 = time.monotonic()
+        with pytest.raises(StorageUnavailable, match="QueryCanceled"):
+            await readers.read("SELECT pg_sleep(5)")
+        assert time.monotonic() - t0 < 1.8  # one statement timeout (1 s), not two
+        assert readers.connections == 2 and all(not c.closed for c in readers._idle)
+        # the server ends every session (a restart): the next read reconnects, once
         with psycopg.connect(url, autocommit=True) as conn:
             conn.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = "
                          "current_database() AND pid <> pg_backend_pid()")
         await asyncio.sleep(0.2)
-        assert readers.connections >= 1  # dead, and the pool does not know yet
         assert (await readers.read("SELECT 41 + 1"))[0][0] == 42
-        assert readers.connections == 1  # the others went with the broken one
+        assert readers.connections == 1 and all(c.closed for c in idle)
         with pytest.raises(StorageUnavailable, match="read failed"):  # a statement the server ends
             await readers.read("SELECT pg_terminate_backend(pg_backend_pid())")
         readers.close()
-        assert readers.connections == 0
         with pytest.raises(StorageUnavailable, match="closed"):
             await readers.read("SELECT 1")
-        dead = AsyncReaders(lambda: dict(kwargs(), conninfo=f"postgresql://selfcal@127.0.0.1:{_free_port()}/x"))
-        with pytest.raises(StorageUnavailable, match="read failed"):
-            await dead.read("SELECT 1")
-        assert dead.connections == 0
-        # the store's own readers, left open when this loop ends
-        assert (await store.current_async("nobody")) is None
+
+    asyncio.run(scenario())
+    assert _backends(url) == 0
+
+
+def test_a_cancelled_read_returns_at_once_and_its_statement_ends_on_its_own(tmp_path):
+    """A caller cancelled mid-read (a client gone) is not held by the statement; the
+    statement finishes on its own connection, within the limit, which then serves again."""
+    import asyncio
+
+    url = backend_db(tmp_path / "pg-async-cancel.db")
+    _create(url)
+
+    async def scenario():
+        readers = _readers(url, limit=2)
+        t0 = time.monotonic()
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(readers.read("SELECT pg_sleep(1.5)"), 0.2)
+        assert time.monotonic() - t0 < 1.0
+        assert readers.connections == 1  # still running its statement
+        assert (await readers.read("SELECT 7"))[0][0] == 7  # the other slot
+        await asyncio.sleep(2.0)
+        assert readers.connections == 2 and len(readers._idle) == 2  # back in the pool, not closed under it
+        assert (await readers.read("SELECT 8"))[0][0] == 8
+        readers.close()
+
+    asyncio.run(scenario())
+
+
+def test_closing_while_reads_run_ends_each_with_rows_or_a_503_and_closes_every_connection(tmp_path):
+    """In the loop (an app's shutdown) and from another thread (``store.close()``): no read
+    hangs, none fails with anything but StorageUnavailable, no connection is closed under
+    a running statement, and every connection is closed in the end."""
+    import asyncio
+    import threading
+
+    from selfcal_service.storage import StorageUnavailable
+
+    url = backend_db(tmp_path / "pg-async-close.db")
+    store = PostgresStore(url, max_idle_readers=3)
+    store.open()
+    _ingest(store, "dev-c", 0).result(timeout=30)
+
+    async def in_the_loop():
+        readers = _readers(url, limit=3)
+        tasks = [asyncio.ensure_future(readers.read("SELECT %s::int, pg_sleep(0.3)", (i,))) for i in range(8)]
+        await asyncio.sleep(0.1)
+        running = list(readers._open)
+        assert len(running) == 3
+        readers.close()
+        done = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 15)
+        rows = [d for d in done if isinstance(d, list)]
+        refused = [d for d in done if isinstance(d, StorageUnavailable)]
+        assert len(rows) == 3 and len(refused) == 5, done  # the running three finished, the waiting refused
+        assert readers.connections == 0 and all(c.closed for c in running)
+
+    asyncio.run(in_the_loop())
+    outcomes: list = []
+
+    def reader_thread():
+        async def reads():
+            async def one():
+                while True:
+                    try:
+                        outcomes.append(await store.current_async("dev-c"))
+                    except StorageUnavailable as exc:
+                        outcomes.append(exc)
+                        return
+            await asyncio.gather(*(one() for _ in range(6)))
+        asyncio.run(reads())
+
+    t = threading.Thread(target=reader_thread)
+    t.start()
+    time.sleep(0.5)
+    store.close()  # from this thread, while the other's loop reads
+    t.join(15)
+    assert not t.is_alive()
+    assert sum(isinstance(o, StorageUnavailable) for o in outcomes) == 6
+    assert all(isinstance(o, StorageUnavailable) or o[0].batches_stored == 1 for o in outcomes)
+    deadline = time.monotonic() + 10
+    while _backends(url) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _backends(url) == 0
+
+    async def after():
+        return await store.current_async("dev-c")
+
+    with pytest.raises(StorageUnavailable, match="closed"):
+        asyncio.run(after())
+
+
+def test_reads_fail_fast_on_a_server_that_does_not_answer_and_never_block_the_loop(tmp_path):
+    """A host that accepts TCP and never answers: the first reads wait out the connect
+    timeout (2 s, libpq's least) in the loop without blocking it; the reads waiting behind
+    them fail at once instead of each waiting its own."""
+    import asyncio
+    import socket
+
+    from selfcal_service.storage import StorageUnavailable
+
+    silent = socket.socket()
+    silent.bind(("127.0.0.1", 0))
+    silent.listen(64)  # the kernel completes handshakes; nobody ever answers
+    url = f"postgresql://selfcal@127.0.0.1:{silent.getsockname()[1]}/nothing"
+
+    async def scenario():
+        readers = _readers(url, limit=8, connect_timeout=2)
+        gaps = []
+
+        async def ticker():
+            last = time.monotonic()
+            while True:
+                await asyncio.sleep(0.01)
+                now = time.monotonic()
+                gaps.append(now - last)
+                last = now
+
+        tick = asyncio.ensure_future(ticker())
+        t0 = time.monotonic()
+        done = await asyncio.gather(*(readers.read("SELECT 1") for _ in range(20)), return_exceptions=True)
+        took = time.monotonic() - t0
+        tick.cancel()
+        assert all(isinstance(d, StorageUnavailable) for d in done), done
+        assert 1.5 < took < 4.0  # one connect timeout (without the fail-fast: 3 rounds, 6 s)
+        assert max(gaps) < 0.5 and readers.connections == 0
 
     try:
         asyncio.run(scenario())
-        assert _backends(url) >= 1  # the store's async reader is still connected
-        store.close()
-        deadline = time.monotonic() + 10
-        while _backends(url) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert _backends(url) == 0
     finally:
-        store.close()
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        silent.close()
 
 
 def test_a_thread_read_after_the_server_ended_every_session_reconnects(tmp_path):
     """The reader pool's idle connections all die together when the server restarts: the
-    read retries on a new connection, not on another dead one from the pool."""
+    read retries on a new connection, not on another dead one from the pool. A statement
+    timeout is not retried, and leaves the other idle connections alone."""
     import psycopg
 
+    from selfcal_service.storage import StorageUnavailable
+
     url = backend_db(tmp_path / "pg-restart.db")
-    store = PostgresStore(url, max_idle_readers=4)
+    store = PostgresStore(url, max_idle_readers=4, statement_timeout_s=1.0)
     store.open()
     try:
-        with cf.ThreadPoolExecutor(4) as pool:  # four idle readers in the pool
-            list(pool.map(lambda _: store._read("SELECT pg_sleep(0.1)"), range(4)))
-        assert len(store._idle) == 4
+        store._idle.extend(store._connect() for _ in range(4))
+        t0 = time.monotonic()
+        with pytest.raises(StorageUnavailable, match="QueryCanceled"):
+            store._read("SELECT pg_sleep(5)")
+        assert time.monotonic() - t0 < 1.8  # one statement timeout (1 s), not two
+        assert len(store._idle) == 3
         with psycopg.connect(url, autocommit=True) as conn:
             conn.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = "
                          "current_database() AND pid <> pg_backend_pid()")
