@@ -10,8 +10,13 @@ socket in the event loop. What a thread read promises holds here too:
   connection (the idle ones are dropped: the restart broke them too); a failed connect,
   a timeout or a deadlock is not retried;
 * every database failure is :class:`StorageUnavailable` (the route's 503);
-* after a failed connect, reads that need a new connection fail at once for
-  ``down_s`` instead of each waiting out its own connect timeout.
+* after a failed connect while the pool has no connection open (the server is not
+  reached), the reads that need a new connection fail at once for ``down_s`` instead
+  of each waiting out its own connect timeout (with a connection open, the server is
+  up: a failed connect, e.g. ``max_connections``, fails that read alone);
+* a statement whose pooled connection broke is run again once, on a new connection:
+  the statements are idempotent SELECTs, so a connection that died during its
+  statement (not only before it) runs it twice.
 
 At most ``limit`` statements of one loop hold a connection at a time; the other reads
 wait their turn, so a burst of GETs never opens more connections than that. A read whose
@@ -83,14 +88,16 @@ class AsyncReaders:
 
         if self._closed:
             raise StorageUnavailable("database reads are closed (the service is stopping)")
-        if time.monotonic() < self._down_until:
-            raise StorageUnavailable(f"database unreachable (a connect failed just now: {self._down_reason})")
+        if time.monotonic() < self._down_until and not self._open:
+            raise StorageUnavailable(f"database not reached (a connect failed just now: {self._down_reason})")
         try:
             conn = await psycopg.AsyncConnection.connect(**self._connect_kwargs())
         except psycopg.Error as exc:
-            self._down_until = time.monotonic() + self.down_s
-            self._down_reason = f"{type(exc).__name__}: {exc}"
-            raise StorageUnavailable(f"database read failed: {self._down_reason}") from None
+            reason = f"{type(exc).__name__}: {exc}"
+            if not self._open:  # no connection of ours works either: the server is not reached
+                self._down_until = time.monotonic() + self.down_s
+                self._down_reason = reason
+            raise StorageUnavailable(f"database read failed: {reason}") from None
         if self._closed:  # closed while connecting
             _finish(conn)
             raise StorageUnavailable("database reads are closed (the service is stopping)")
@@ -153,10 +160,13 @@ class AsyncReaders:
 
     def close(self) -> None:
         """Refuse new reads and close the idle connections; a statement still running closes
-        its own connection when it ends. Call it in this pool's loop (or after it ended)."""
+        its own connection when it ends. The reads waiting for a turn are woken and refused.
+        Call it in this pool's loop (or after it ended)."""
         self._closed = True
         while self._idle:
             self._drop(self._idle.pop())
+        for _ in range(self.limit):  # each refused waiter passes its turn on to the next
+            self._turns.release()
 
     def close_all(self) -> None:
         """:meth:`close`, and every other connection too: only once this pool's loop has

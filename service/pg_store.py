@@ -405,9 +405,9 @@ _FLEET_SQL = fleet_select(lambda key: f"((v.calibration::jsonb) ->> '{key}')::do
 
 
 def _close_in_loop(loop: Any, readers: AsyncReaders) -> None:
-    """Close an event loop's readers from any thread: in the loop itself while it runs
-    (a statement still running there closes its own connection when it ends), at once
-    once it ended (nothing runs on its connections any more)."""
+    """Close an event loop's readers from any thread: in the loop itself while it can
+    still run (a statement running there closes its own connection when it ends; asyncio's
+    shutdown runs the callback), at once once it is closed (nothing runs on them any more)."""
     import asyncio
 
     try:
@@ -416,9 +416,9 @@ def _close_in_loop(loop: Any, readers: AsyncReaders) -> None:
         running = None
     if loop.is_closed():
         readers.close_all()
-    elif running is loop or not loop.is_running():
+    elif running is loop:
         readers.close()
-    else:
+    else:  # running in another thread, or between two runs (asyncio.run's shutdown)
         readers.refuse()  # from now on (a flag); the idle connections are closed in the loop
         try:
             loop.call_soon_threadsafe(readers.close)
@@ -449,6 +449,7 @@ class PostgresStore(GroupCommitStore):
         self._idle: list[Any] = []  # reader connections not in use (a small pool)
         self._conns: list[Any] = []
         self._conns_lock = threading.Lock()
+        self._busy: set[Any] = set()  # reader connections running a statement (close() leaves them to it)
         self._aio: dict[int, tuple[Any, AsyncReaders]] = {}  # id(event loop) -> (loop, its readers)
         self._reads_closed = False
 
@@ -477,8 +478,31 @@ class PostgresStore(GroupCommitStore):
         except Exception:  # noqa: BLE001 - closing a broken connection
             pass
         with self._conns_lock:
+            self._busy.discard(conn)
             if conn in self._conns:
                 self._conns.remove(conn)
+
+    def _reader(self, pooled: bool) -> Any:
+        """A reader connection for this thread's statement, marked busy: an idle one
+        (``pooled``, if any) or a new one. None: no idle one. StorageUnavailable once closed."""
+        from selfcal_service.storage import StorageUnavailable
+
+        with self._conns_lock:
+            if self._reads_closed:
+                raise StorageUnavailable("the store is closed")
+            if pooled:
+                conn = self._idle.pop() if self._idle else None
+                if conn is not None:
+                    self._busy.add(conn)
+                return conn
+        conn = self._connect()
+        with self._conns_lock:
+            self._busy.add(conn)
+            closed = self._reads_closed
+        if closed:  # closed while connecting
+            self._drop(conn)
+            raise StorageUnavailable("the store is closed")
+        return conn
 
     def _read(self, sql: str, params: tuple | dict = ()) -> list[tuple]:
         """Run one statement on a pooled reader connection; a broken one is replaced once, by
@@ -487,12 +511,11 @@ class PostgresStore(GroupCommitStore):
 
         errors = storage_errors()
         for attempt in (0, 1):
-            with self._conns_lock:
-                conn = self._idle.pop() if self._idle and not attempt else None
+            conn = self._reader(pooled=not attempt)
             pooled = conn is not None
             try:
                 if conn is None:
-                    conn = self._connect()
+                    conn = self._reader(pooled=False)
                 rows = conn.execute(sql, params).fetchall()
             except errors as exc:
                 broken = conn is not None and (conn.broken or conn.closed)  # before closing it
@@ -509,7 +532,8 @@ class PostgresStore(GroupCommitStore):
                 self._drop(conn)
                 raise
             with self._conns_lock:
-                if len(self._idle) < self.max_idle_readers:
+                self._busy.discard(conn)
+                if not self._reads_closed and len(self._idle) < self.max_idle_readers:
                     self._idle.append(conn)
                     conn = None
             if conn is not None:
@@ -604,14 +628,15 @@ class PostgresStore(GroupCommitStore):
             pools, self._aio = list(self._aio.values()), {}
         for loop, readers in pools:
             _close_in_loop(loop, readers)
-        with self._conns_lock:
-            for conn in self._conns:
-                try:
-                    conn.close()
-                except Exception:  # noqa: BLE001 - closing anyway
-                    pass
-            self._conns.clear()
+        with self._conns_lock:  # a connection running a read is closed by that read when it ends
+            free = [c for c in self._conns if c not in self._busy]
+            self._conns = [c for c in self._conns if c in self._busy]
             self._idle.clear()
+        for conn in free:
+            try:
+                conn.close()
+            except Exception:  # noqa: BLE001 - closing anyway
+                pass
 
     def _take_group(self, first: Any) -> tuple[list, bool]:
         ops, stop = super()._take_group(first)

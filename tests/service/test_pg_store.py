@@ -403,6 +403,29 @@ def test_a_read_on_the_event_loop_answers_as_a_read_in_a_thread(two_stores):
     assert got[0][1].version == 1 and got[1][1] is None and got[1][0].batches_stored == 1
 
 
+def _until(cond, timeout_s: float = 10.0) -> bool:
+    """Poll ``cond()`` until it holds (True) or ``timeout_s`` passed (False)."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def _terminate_all(url) -> None:
+    """End every other session of ``url``'s database (as a server restart does), and wait
+    until they are gone."""
+    import psycopg
+
+    with psycopg.connect(url, autocommit=True) as conn:
+        pids = [r[0] for r in conn.execute(
+            "SELECT pg_terminate_backend(pid), pid FROM pg_stat_activity WHERE datname = current_database() "
+            "AND pid <> pg_backend_pid()").fetchall() for r in [r[1:]]]
+        assert _until(lambda: not conn.execute("SELECT count(*) FROM pg_stat_activity WHERE pid = ANY(%s)",
+                                               (pids,)).fetchone()[0])
+
+
 def _create(url):
     """Create the schema on ``url`` (a store opened and closed)."""
     store = PostgresStore(url)
@@ -423,8 +446,6 @@ def test_event_loop_reads_bound_their_connections_and_replace_a_broken_one(tmp_p
     restarted server broke are replaced by one new connection, once; a statement timeout
     is not retried and leaves the other idle connections alone."""
     import asyncio
-
-    import psycopg
 
     from selfcal_service.storage import StorageUnavailable
 
@@ -451,20 +472,19 @@ def test_event_loop_reads_bound_their_connections_and_replace_a_broken_one(tmp_p
         assert time.monotonic() - t0 < 1.8  # one statement timeout (1 s), not two
         assert readers.connections == 2 and all(not c.closed for c in readers._idle)
         # the server ends every session (a restart): the next read reconnects, once
-        with psycopg.connect(url, autocommit=True) as conn:
-            conn.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = "
-                         "current_database() AND pid <> pg_backend_pid()")
-        await asyncio.sleep(0.2)
+        await asyncio.to_thread(_terminate_all, url)
         assert (await readers.read("SELECT 41 + 1"))[0][0] == 42
         assert readers.connections == 1 and all(c.closed for c in idle)
-        with pytest.raises(StorageUnavailable, match="read failed"):  # a statement the server ends
+        # a statement that ends its own session: run again once on a new connection, then a 503
+        with pytest.raises(StorageUnavailable, match="read failed"):
             await readers.read("SELECT pg_terminate_backend(pg_backend_pid())")
+        assert readers.connections == 0
         readers.close()
         with pytest.raises(StorageUnavailable, match="closed"):
             await readers.read("SELECT 1")
 
     asyncio.run(scenario())
-    assert _backends(url) == 0
+    assert _until(lambda: _backends(url) == 0)
 
 
 def test_a_cancelled_read_returns_at_once_and_its_statement_ends_on_its_own(tmp_path):
@@ -477,13 +497,16 @@ def test_a_cancelled_read_returns_at_once_and_its_statement_ends_on_its_own(tmp_
 
     async def scenario():
         readers = _readers(url, limit=2)
+        assert (await readers.read("SELECT 6"))[0][0] == 6  # one connection, idle
         t0 = time.monotonic()
         with pytest.raises(TimeoutError):
             await asyncio.wait_for(readers.read("SELECT pg_sleep(1.5)"), 0.2)
         assert time.monotonic() - t0 < 1.0
-        assert readers.connections == 1  # still running its statement
-        assert (await readers.read("SELECT 7"))[0][0] == 7  # the other slot
-        await asyncio.sleep(2.0)
+        assert readers.connections == 1 and not readers._idle  # still running its statement
+        assert (await readers.read("SELECT 7"))[0][0] == 7  # the other slot, a new connection
+        deadline = time.monotonic() + 10
+        while len(readers._idle) < 2 and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
         assert readers.connections == 2 and len(readers._idle) == 2  # back in the pool, not closed under it
         assert (await readers.read("SELECT 8"))[0][0] == 8
         readers.close()
@@ -507,8 +530,10 @@ def test_closing_while_reads_run_ends_each_with_rows_or_a_503_and_closes_every_c
 
     async def in_the_loop():
         readers = _readers(url, limit=3)
-        tasks = [asyncio.ensure_future(readers.read("SELECT %s::int, pg_sleep(0.3)", (i,))) for i in range(8)]
-        await asyncio.sleep(0.1)
+        tasks = [asyncio.ensure_future(readers.read("SELECT %s::int, pg_sleep(0.5)", (i,))) for i in range(8)]
+        deadline = time.monotonic() + 10
+        while readers.connections < 3 and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
         running = list(readers._open)
         assert len(running) == 3
         readers.close()
@@ -535,22 +560,68 @@ def test_closing_while_reads_run_ends_each_with_rows_or_a_503_and_closes_every_c
 
     t = threading.Thread(target=reader_thread)
     t.start()
-    time.sleep(0.5)
+    assert _until(lambda: len(outcomes) >= 20)  # the other loop reads
     store.close()  # from this thread, while the other's loop reads
     t.join(15)
     assert not t.is_alive()
-    assert sum(isinstance(o, StorageUnavailable) for o in outcomes) == 6
+    assert len(outcomes) > 20 and sum(isinstance(o, StorageUnavailable) for o in outcomes) == 6
     assert all(isinstance(o, StorageUnavailable) or o[0].batches_stored == 1 for o in outcomes)
-    deadline = time.monotonic() + 10
-    while _backends(url) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert _backends(url) == 0
+    assert _until(lambda: _backends(url) == 0)
 
     async def after():
         return await store.current_async("dev-c")
 
     with pytest.raises(StorageUnavailable, match="closed"):
         asyncio.run(after())
+    with pytest.raises(StorageUnavailable, match="closed"):  # the thread reads too
+        store.current("dev-c")
+    assert _until(lambda: _backends(url) == 0)
+
+
+def test_closing_refuses_the_reads_waiting_for_a_turn_at_once(tmp_path):
+    """Reads queued behind a long statement are refused when the pool closes, not when
+    the statement ends; a failed connect while the pool has a connection open fails that
+    read alone (the server is up), not every read for a while."""
+    import asyncio
+
+    from selfcal_service.storage import StorageUnavailable
+
+    url = backend_db(tmp_path / "pg-async-waiters.db")
+    _create(url)
+
+    async def scenario():
+        readers = _readers(url, limit=1)
+        long = asyncio.ensure_future(readers.read("SELECT pg_sleep(2)"))
+        waiting = [asyncio.ensure_future(readers.read("SELECT 1")) for _ in range(3)]
+        await asyncio.sleep(0.3)
+        t0 = time.monotonic()
+        readers.close()
+        done = await asyncio.wait_for(asyncio.gather(*waiting, return_exceptions=True), 10)
+        assert time.monotonic() - t0 < 1.0 and all(isinstance(d, StorageUnavailable) for d in done), done
+        assert len(await long) == 1  # the running statement ends normally
+        assert readers.connections == 0
+
+        good = PostgresStore(url)._connect_kwargs
+        calls = []
+
+        def kwargs():  # the first connect works; the next ones find nobody listening
+            calls.append(1)
+            return good() if len(calls) == 1 else {**good(), "conninfo": f"postgresql://x@127.0.0.1:{_free_port()}/x"}
+
+        from selfcal_service.pg_async import AsyncReaders
+
+        readers = AsyncReaders(kwargs, limit=2)
+        long = asyncio.ensure_future(readers.read("SELECT pg_sleep(0.5)"))
+        while readers.connections < 1:
+            await asyncio.sleep(0.01)
+        for _ in range(2):  # each tries its own connect: no "not reached" window with one open
+            with pytest.raises(StorageUnavailable, match="read failed"):
+                await readers.read("SELECT 1")
+        await long
+        assert (await readers.read("SELECT 2"))[0][0] == 2  # on the pooled connection
+        readers.close()
+
+    asyncio.run(scenario())
 
 
 def test_reads_fail_fast_on_a_server_that_does_not_answer_and_never_block_the_loop(tmp_path):
@@ -598,8 +669,6 @@ def test_a_thread_read_after_the_server_ended_every_session_reconnects(tmp_path)
     """The reader pool's idle connections all die together when the server restarts: the
     read retries on a new connection, not on another dead one from the pool. A statement
     timeout is not retried, and leaves the other idle connections alone."""
-    import psycopg
-
     from selfcal_service.storage import StorageUnavailable
 
     url = backend_db(tmp_path / "pg-restart.db")
@@ -612,11 +681,16 @@ def test_a_thread_read_after_the_server_ended_every_session_reconnects(tmp_path)
             store._read("SELECT pg_sleep(5)")
         assert time.monotonic() - t0 < 1.8  # one statement timeout (1 s), not two
         assert len(store._idle) == 3
-        with psycopg.connect(url, autocommit=True) as conn:
-            conn.execute("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = "
-                         "current_database() AND pid <> pg_backend_pid()")
-        time.sleep(0.2)
+        _terminate_all(url)
         assert store.current("nobody") is None
         assert len(store._idle) == 1
     finally:
         store.close()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
