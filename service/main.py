@@ -496,9 +496,7 @@ def create_app(
                 gc.unfreeze()  # back to the collector (tests run many apps in one process)
             if settings.refit_in_process:
                 worker.stop()
-            if hasattr(st, "close_async_reads"):
-                await st.close_async_reads()  # this loop's connections, in this loop
-            st.close()
+            st.close()  # in this loop: its event-loop readers are closed here too
 
     app = FastAPI(
         title="selfcal",

@@ -101,9 +101,10 @@ class Metrics:
     def track_gc(self, role: str = "api") -> None:
         """Time every cyclic garbage collection of this process into ``selfcal_gc_pause_seconds``
         (one histogram per generation, labelled ``role``: ``api`` for a process that answers
-        requests, ``worker`` for ``selfcal worker``, whose pauses stall no request). The callback runs inside whichever thread triggered
-        the collection, possibly while that thread holds this registry's lock, so it takes
-        no lock: under the GIL an update can at worst lose a count to a concurrent one."""
+        requests, ``worker`` for ``selfcal worker``, whose pauses stall no request). The
+        callback runs inside whichever thread triggered the collection, possibly while that
+        thread holds this registry's lock, so it takes no lock: under the GIL an update can
+        at worst lose a count to a concurrent one."""
         import gc
 
         started = [0.0]

@@ -28,19 +28,19 @@ connection is ever closed under a statement that is still running.
 from __future__ import annotations
 
 import asyncio
+import functools
 import time
 from collections.abc import Callable
 from typing import Any
 
-# psycopg's errors that mean the database cannot answer now (the others are bugs: a 500)
-STORAGE_ERRORS = ("OperationalError", "InterfaceError", "InternalError")
 
-
+@functools.cache
 def storage_errors() -> tuple[type[BaseException], ...]:
-    """psycopg's exception classes of a database that cannot answer (503, not 500)."""
+    """psycopg's exception classes of a database that cannot answer now (a 503; the others
+    are bugs: a 500). Built once: every read checks against it."""
     import psycopg
 
-    return tuple(getattr(psycopg, name) for name in STORAGE_ERRORS)
+    return psycopg.OperationalError, psycopg.InterfaceError, psycopg.InternalError
 
 
 def _finish(conn: Any) -> None:

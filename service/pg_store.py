@@ -547,9 +547,7 @@ class PostgresStore(GroupCommitStore):
         self._drop(conn)
 
     def _is_storage_error(self, exc: BaseException) -> bool:
-        import psycopg
-
-        return isinstance(exc, (psycopg.OperationalError, psycopg.InterfaceError, psycopg.InternalError))
+        return isinstance(exc, storage_errors())
 
     def _transaction_aborted(self, conn: Any) -> bool:
         # a refusal raised in Python, or by the driver before sending (e.g. a NUL byte in a
@@ -916,8 +914,8 @@ class PostgresStore(GroupCommitStore):
         from selfcal_service.storage import StorageUnavailable
 
         loop = asyncio.get_running_loop()
-        entry = self._aio.get(id(loop))
-        if entry is None or entry[0] is not loop:
+        entry = self._aio.get(id(loop))  # the loop is held there: its id is not reused
+        if entry is None:
             with self._conns_lock:
                 if self._reads_closed:
                     raise StorageUnavailable("the store is closed")
@@ -926,16 +924,6 @@ class PostgresStore(GroupCommitStore):
                     self._aio.pop(key)[1].close_all()
                 entry = self._aio[id(loop)] = (loop, AsyncReaders(self._connect_kwargs, self.max_idle_readers))
         return entry[1]
-
-    async def close_async_reads(self) -> None:
-        """Close the running event loop's reader connections (an app's shutdown, in its loop)."""
-        import asyncio
-
-        loop = asyncio.get_running_loop()
-        with self._conns_lock:
-            entry = self._aio.pop(id(loop), None)
-        if entry is not None:
-            entry[1].close()
 
     def history(self, device_id: str) -> list[VersionRecord]:
         rows = self._read(f"SELECT {VERSION_COLUMNS} FROM versions WHERE device_id = %s ORDER BY version",
