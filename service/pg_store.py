@@ -484,7 +484,7 @@ class PostgresStore(GroupCommitStore):
 
     def _reader(self, pooled: bool) -> Any:
         """A reader connection for this thread's statement, marked busy: an idle one
-        (``pooled``, if any) or a new one. None: no idle one. StorageUnavailable once closed."""
+        (``pooled``; None if there is none) or a new one. StorageUnavailable once closed."""
         from selfcal_service.storage import StorageUnavailable
 
         with self._conns_lock:
@@ -511,10 +511,10 @@ class PostgresStore(GroupCommitStore):
 
         errors = storage_errors()
         for attempt in (0, 1):
-            conn = self._reader(pooled=not attempt)
+            conn = self._reader(pooled=True) if not attempt else None
             pooled = conn is not None
             try:
-                if conn is None:
+                if conn is None:  # a new one, in here: a failed connect is a 503 like the rest
                     conn = self._reader(pooled=False)
                 rows = conn.execute(sql, params).fetchall()
             except errors as exc:
@@ -529,7 +529,8 @@ class PostgresStore(GroupCommitStore):
                     self._drop(c)
                 continue
             except BaseException:
-                self._drop(conn)
+                if conn is not None:
+                    self._drop(conn)
                 raise
             with self._conns_lock:
                 self._busy.discard(conn)

@@ -713,3 +713,22 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def test_a_thread_read_whose_reconnect_fails_is_a_503(tmp_path):
+    """After a restart broke the pooled connection, the retry's new connection can fail too
+    (the server not back yet): StorageUnavailable (the route's 503), not psycopg's error."""
+    from selfcal_service.storage import StorageUnavailable
+
+    url = backend_db(tmp_path / "pg-reconnect.db")
+    store = PostgresStore(url)
+    store.open()
+    try:
+        store._idle.append(store._connect())
+        _terminate_all(url)
+        good = store._connect_kwargs
+        store._connect_kwargs = lambda: {**good(), "conninfo": f"postgresql://x@127.0.0.1:{_free_port()}/x"}
+        with pytest.raises(StorageUnavailable, match="read failed"):
+            store.current("nobody")
+    finally:
+        store.close()
