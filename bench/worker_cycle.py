@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "service"))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # pg_cluster
 
 
@@ -93,6 +92,8 @@ def main(argv=None) -> int:
                     help="comma-separated [service] checkpoint_patch_fraction to run, paired (0: every checkpoint "
                          "in full)")
     ap.add_argument("--seed", type=int, default=2)
+    ap.add_argument("--profile", default="",
+                    help="write a cProfile of the timed cycles alone to FILE.<backend>.<checkpoint_samples>")
     args = ap.parse_args(argv)
 
     from selfcal.calibrator import OnlineCalibrator
@@ -202,10 +203,18 @@ def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db:
             patches0 = worker.metrics.get("selfcal_worker_checkpoint_patches_total")
             ckpts0 = worker.metrics.get("selfcal_worker_checkpoints_total")
             wal0 = wal_bytes(db)
+            prof = None
+            if args.profile:
+                import cProfile
+                prof = cProfile.Profile()
             t0, c0, m0 = time.perf_counter(), time.process_time(), machine_busy_s()
+            if prof is not None:
+                prof.enable()
             for _ in range(args.batches):
                 for d in range(args.devices):
                     worker.process(f"dev{d:04d}")
+            if prof is not None:
+                prof.disable()
             wall = time.perf_counter() - t0
             cpu, busy = time.process_time() - c0, machine_busy_s() - m0
             wal = wal_bytes(db) - wal0
@@ -227,6 +236,10 @@ def run(cfg, ch, i0: int, args, checkpoint_samples: int, worn, backend: str, db:
             store.close()
     cycles = args.devices * args.batches
     rest = wall - timers["feed"] - timers["to_json"]
+    if prof is not None:
+        out = f"{args.profile}.{backend}.{checkpoint_samples}"
+        prof.dump_stats(out)
+        print(f"profile of the cycles (cProfile, so the figures below are slowed by it): {out}")
     print(f"{backend}, checkpoint_samples {checkpoint_samples}, patch fraction {patch_fraction:g}: {cycles} cycles of {args.batch_samples} samples in {wall:.2f} s: "
           f"{wall / cycles * 1e3:.2f} ms a cycle, {cycles * args.batch_samples / wall:,.0f} samples/s; CPU a cycle "
           f"{cpu / cycles * 1e3:.2f} ms in this process, {busy / cycles * 1e3:.2f} ms on the machine (the database "
