@@ -200,3 +200,146 @@ def window_stats(x, w, idx):
             mean[j, ch] = mu
             sd[j, ch] = math.sqrt((0.0 + pairwise_sum(buf, 0, w)) / (w - 1))
     return mean, sd
+
+
+@_jit
+def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_roundoff):
+    """Every condition of :func:`selfcal.detect._window_flags` but the calibrated norm, per
+    ``w``-sample window of ``x`` (c, n) at times ``t`` (n,): OUT, IN or UNSURE (int8,
+    n - w + 1), in one pass over the samples before the sd test.
+
+    A window is OUT when one of its samples is not finite on some channel, is at or past
+    ``clip`` on an axis (NaN: no clip test), or has ``| ||a|| - 1 | >= norm_tol`` (NaN: no
+    raw norm test, a model decides it), or when a time step inside it is ``<= 0``, NaN or
+    ``> max_gap``. The others get :func:`sd_codes`' verdict on the samples with every
+    channel of a sample holding a non-finite value set to 0.0 (as the numpy code does
+    before its sd test). When no window passes those tests the sd test is not run (every
+    window OUT), as in the numpy code. Sums and comparisons are the numpy code's, in its
+    order (the norm: ``sqrt((ax*ax + ay*ay) + az*az)``)."""
+    c, n = x.shape
+    m = n - w + 1
+    codes = np.zeros(max(m, 0), dtype=np.int8)  # OUT
+    if m <= 0:
+        return codes
+    ok = np.zeros(m, dtype=np.bool_)
+    last_bad = -1  # the last sample that fails a per-sample test
+    last_gap = 0  # the last sample i whose step from i - 1 breaks a window (0: none)
+    all_finite = True
+    any_ok = False
+    use_clip = clip == clip
+    use_norm = norm_tol == norm_tol
+    for i in range(n):
+        bad = False
+        for ch in range(c):
+            if not math.isfinite(x[ch, i]):
+                bad = True
+        if bad:
+            all_finite = False
+        else:
+            if use_clip:
+                for ch in range(3):
+                    if abs(x[ch, i]) >= clip:
+                        bad = True
+            if use_norm and not bad:
+                a0 = x[0, i]
+                a1 = x[1, i]
+                a2 = x[2, i]
+                if abs(math.sqrt(a0 * a0 + a1 * a1 + a2 * a2) - 1.0) >= norm_tol:
+                    bad = True
+        if bad:
+            last_bad = i
+        if i >= 1:
+            dt = t[i] - t[i - 1]
+            if not (dt > 0) or dt > max_gap:
+                last_gap = i
+        j = i - w + 1
+        if j >= 0 and last_bad < j and last_gap <= j:
+            ok[j] = True
+            any_ok = True
+    if not any_ok:
+        return codes
+    if all_finite:
+        x0 = x
+    else:
+        x0 = np.empty_like(x)
+        for i in range(n):
+            fin = True
+            for ch in range(c):
+                if not math.isfinite(x[ch, i]):
+                    fin = False
+            for ch in range(c):
+                x0[ch, i] = x[ch, i] if fin else 0.0
+    sd = sd_codes(x0, w, thresholds, roll_block, unit_roundoff)
+    for j in range(m):
+        if ok[j]:
+            codes[j] = sd[j]
+    return codes
+
+
+@_jit
+def pieces_stats(t, x, lo, hi, min_duration):
+    """:func:`selfcal.detect._pieces_table`'s statistics of the pieces ``[lo, hi)`` (q,) of
+    the buffered samples ``x`` (4 + k, b): axes (g), ``k`` pressure channels (kPa), then
+    temperature (°C), at times ``t`` (b,), in one call.
+
+    Returns ``(keep (q,) bool, mean (p, 3), sd (p, 3), n (p,), t_start (p,), t_end (p,),
+    temp (p,), pressure_sd (p,), partial (p,) bool)`` for the ``p`` pieces kept (at least
+    2 samples and ``t_end - t_start >= min_duration``), each piece's statistics by
+    :func:`window_stats` (numpy's, bit for bit). ``temp`` is the piece's temperature mean
+    when every reading is finite (a sum past the float range stays as numpy leaves it) and
+    NaN when none is; ``partial`` marks the pieces with some readings missing, whose mean
+    of the finite readings the caller takes (numpy's sum of a subset). ``pressure_sd`` is
+    the largest channel sd (NaN if one is NaN, as ``np.max``; NaN without pressure)."""
+    q0 = lo.shape[0]
+    c = x.shape[0]
+    keep = np.zeros(q0, dtype=np.bool_)
+    p = 0
+    for i in range(q0):
+        if hi[i] - lo[i] >= 2 and t[hi[i] - 1] - t[lo[i]] >= min_duration:
+            keep[i] = True
+            p += 1
+    mean = np.empty((p, 3))
+    sd = np.empty((p, 3))
+    n = np.empty(p, dtype=np.int64)
+    t_start = np.empty(p)
+    t_end = np.empty(p)
+    temp = np.full(p, np.nan)
+    psd = np.full(p, np.nan)
+    partial = np.zeros(p, dtype=np.bool_)
+    one = np.empty(1, dtype=np.int64)
+    j = 0
+    for i in range(q0):
+        if not keep[i]:
+            continue
+        length = hi[i] - lo[i]
+        one[0] = lo[i]
+        mu, s = window_stats(x, length, one)
+        for ch in range(3):
+            mean[j, ch] = mu[0, ch]
+            sd[j, ch] = s[0, ch]
+        n[j] = length
+        t_start[j] = t[lo[i]]
+        t_end[j] = t[hi[i] - 1]
+        tm = mu[0, c - 1]
+        if math.isfinite(tm):
+            temp[j] = tm
+        else:
+            finite = 0
+            for k in range(lo[i], hi[i]):
+                if math.isfinite(x[c - 1, k]):
+                    finite += 1
+            if finite == length:
+                temp[j] = tm  # every reading finite, the sum past the float range: numpy's mean too
+            elif finite > 0:
+                partial[j] = True
+        if c > 4:
+            top = s[0, 3]
+            for ch in range(4, c - 1):
+                v = s[0, ch]
+                if top != top:
+                    break
+                if v != v or v > top:
+                    top = v
+            psd[j] = top
+        j += 1
+    return keep, mean, sd, n, t_start, t_end, temp, psd, partial

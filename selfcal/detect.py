@@ -48,6 +48,7 @@ explicit: :func:`step` is the pure kernel ``step(state, chunk) -> (state, window
 from __future__ import annotations
 
 import base64
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
@@ -62,7 +63,14 @@ from pydantic import (
     model_validator,
 )
 
-from selfcal.detect_numba import IN, UNSURE, sd_codes_kernel, window_stats_kernel
+from selfcal.detect_numba import (
+    IN,
+    UNSURE,
+    pieces_kernel,
+    sd_codes_kernel,
+    window_codes_kernel,
+    window_stats_kernel,
+)
 from selfcal.errors import InputError
 
 __all__ = [
@@ -484,6 +492,36 @@ def _sd_limits(p2: list[float], first: list[float], w: int, length: int, thresho
             np.array(out_lo)[:, None])
 
 
+@functools.lru_cache(maxsize=64)
+def _sd_thresholds(lo_sd: tuple[float, ...], hi_sd: tuple[float, ...], w: int) -> tuple[tuple, np.ndarray]:
+    """The sliding sd test's thresholds for ``w``-sample windows and per-channel sd bounds
+    ``lo_sd`` / ``hi_sd`` (same unit as the samples; ``lo <= 0``: no lower bound): per
+    channel the upper bound as a sum of squared deviations over ``1 + r`` and ``1 - r``,
+    the lower over ``1 - r`` and ``1 + r`` (``-inf``: none), ``r`` the two-pass reference's
+    relative rounding; as a tuple of 4-tuples and as a read-only ``(c, 4)`` array. Kept
+    per bounds and length (a device's detector asks for the same ones at every chunk)."""
+    r = (4 * math.log2(w) + 16) * _UNIT_ROUNDOFF  # relative: two-pass reference, sqrt, thresholds
+    thresholds = []
+    for hsd, lsd in zip(hi_sd, lo_sd):
+        hs = hsd * hsd * (w - 1)
+        ls = lsd * lsd * (w - 1) if lsd > 0 else -math.inf
+        thresholds.append((hs / (1 + r), hs / (1 - r), ls / (1 - r), ls / (1 + r)))
+    array = np.array(thresholds, dtype=np.float64).reshape(len(thresholds), 4)
+    array.setflags(write=False)
+    return tuple(thresholds), array
+
+
+@functools.lru_cache(maxsize=64)
+def _sd_bounds(sd_min_g: float, sd_max_g: float, pressure_sd_max_kpa: float, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel sd bounds ``(lo (3 + k,), hi (3 + k,))`` of the three axes (g) and ``k``
+    pressure channels (kPa, no lower bound), read-only."""
+    lo = np.array((sd_min_g,) * 3 + (0.0,) * k)
+    hi = np.array((sd_max_g,) * 3 + (pressure_sd_max_kpa,) * k)
+    lo.setflags(write=False)
+    hi.setflags(write=False)
+    return lo, hi
+
+
 def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, accelerate: bool = True) -> np.ndarray:
     """Whether every channel's sample sd lies in ``[lo_sd, hi_sd]``, for every
     ``w``-sample sliding window, decided exactly as :func:`_exact_window_stats` decides.
@@ -522,16 +560,11 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, acce
     if m <= 0 or c == 0:
         return ok
     u = _UNIT_ROUNDOFF
-    r = (4 * math.log2(w) + 16) * u  # relative: two-pass reference, sqrt, thresholds
     inv_w = 1.0 / w
-    thresholds = []
-    for hsd, lsd in zip(hi_sd.tolist(), lo_sd.tolist()):
-        hs = hsd * hsd * (w - 1)
-        ls = lsd * lsd * (w - 1) if lsd > 0 else -math.inf
-        thresholds.append((hs / (1 + r), hs / (1 - r), ls / (1 - r), ls / (1 + r)))
+    thresholds, threshold_array = _sd_thresholds(tuple(lo_sd.tolist()), tuple(hi_sd.tolist()), w)
     kernel = sd_codes_kernel() if accelerate else None
     if kernel is not None:  # the same verdicts, in one pass (selfcal.detect_numba)
-        codes = kernel(np.asarray(x, dtype=np.float64), w, np.array(thresholds), _ROLL_BLOCK, u)
+        codes = kernel(np.asarray(x, dtype=np.float64), w, threshold_array, _ROLL_BLOCK, u)
         ok = codes == IN
         unsure = np.flatnonzero(codes == UNSURE)
         if unsure.size:
@@ -576,7 +609,8 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, acce
     return ok
 
 
-def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToCal | None) -> np.ndarray:
+def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToCal | None,
+                  accelerate: bool = True) -> np.ndarray:
     """Pass/fail of every ``W``-sample sliding window of a stretch of samples.
 
     Parameters
@@ -599,6 +633,25 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
     if m <= 0:
         return np.zeros(0, dtype=bool)
     k = x.shape[0] - 3
+    lo_sd, hi_sd = _sd_bounds(cfg.sd_min_g, cfg.sd_max_g, cfg.pressure_sd_max_kpa, k)
+    kernel = window_codes_kernel() if accelerate else None
+    if kernel is not None:  # every test but the calibrated norm in one call (selfcal.detect_numba)
+        _, thresholds = _sd_thresholds(tuple(lo_sd.tolist()), tuple(hi_sd.tolist()), w)
+        clip = math.nan if cfg.clip_abs_g is None else cfg.clip_abs_g
+        norm_tol = math.nan if to_cal is not None else cfg.norm_tol_raw_g
+        codes = kernel(np.asarray(t, dtype=np.float64), np.asarray(x, dtype=np.float64), w, clip, norm_tol,
+                       cfg.max_gap_s, thresholds, _ROLL_BLOCK, _UNIT_ROUNDOFF)
+        ok = codes == IN
+        unsure = np.flatnonzero(codes == UNSURE)
+        if unsure.size == 0 and (to_cal is None or not ok.any()):
+            return ok
+        with np.errstate(over="ignore", invalid="ignore"):
+            finite = np.isfinite(x).all(axis=0)
+            x0 = x if finite.all() else np.where(finite, x, 0.0)
+            if unsure.size:
+                _, sd = _exact_window_stats(x0, w, unsure)
+                ok[unsure] = ((sd <= hi_sd) & (sd >= lo_sd)).all(axis=1)
+            return _calibrated_norm(ok, x0, w, cfg, to_cal)
     with np.errstate(over="ignore", invalid="ignore"):  # inf/NaN samples fail below
         finite = np.isfinite(x).all(axis=0)
         bad = ~finite
@@ -619,27 +672,33 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
             ok = (cbad[w:] - cbad[:m] == 0) & (cgap[w:] - cgap[1 : m + 1] == 0)
 
         x0 = x if finite.all() else np.where(finite, x, 0.0)
-        lo_sd = np.array((cfg.sd_min_g,) * 3 + (0.0,) * k)
-        hi_sd = np.array((cfg.sd_max_g,) * 3 + (cfg.pressure_sd_max_kpa,) * k)
         if m <= _SMALL_WINDOWS:  # few new windows (small chunks): reduce each one directly
             cand = np.flatnonzero(ok)
-            _, sd = _exact_window_stats(x0, w, cand)
+            _, sd = _exact_window_stats(x0, w, cand, accelerate)
             ok[cand] = ((sd <= hi_sd) & (sd >= lo_sd)).all(axis=1)
         elif ok.any():
-            ok &= _sd_within(x0, w, lo_sd, hi_sd)
-        if to_cal is not None:
-            idx = np.flatnonzero(ok)
-            if idx.size:
-                mean, _ = _exact_window_stats(x0[:3], w, idx)
-                cal = np.asarray(to_cal(mean), dtype=float)
-                if cal.shape != (idx.size, 3):
-                    raise InputError(
-                        f"to_cal returned shape {cal.shape} for input shape ({idx.size}, 3); "
-                        "it must map (m, 3) g to (m, 3) g"
-                    )
-                dev = np.abs(np.sqrt((cal * cal).sum(axis=1)) - 1.0)
-                ok[idx[~(dev <= cfg.norm_tol_cal_g)]] = False
-        return ok
+            ok &= _sd_within(x0, w, lo_sd, hi_sd, accelerate)
+        return _calibrated_norm(ok, x0, w, cfg, to_cal, accelerate)
+
+
+def _calibrated_norm(ok: np.ndarray, x0: np.ndarray, w: int, cfg: DetectorConfig, to_cal: ToCal | None,
+                     accelerate: bool = True) -> np.ndarray:
+    """``ok`` (m,) with the windows whose calibrated mean fails the norm test set False
+    (``to_cal`` None: unchanged); ``x0`` (3 + k, n) the samples, every channel of a sample
+    with a non-finite value 0.0 (g, kPa)."""
+    if to_cal is not None:
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            mean, _ = _exact_window_stats(x0[:3], w, idx, accelerate)
+            cal = np.asarray(to_cal(mean), dtype=float)
+            if cal.shape != (idx.size, 3):
+                raise InputError(
+                    f"to_cal returned shape {cal.shape} for input shape ({idx.size}, 3); "
+                    "it must map (m, 3) g to (m, 3) g"
+                )
+            dev = np.abs(np.sqrt((cal * cal).sum(axis=1)) - 1.0)
+            ok[idx[~(dev <= cfg.norm_tol_cal_g)]] = False
+    return ok
 
 
 def _piece_ranges(
@@ -668,7 +727,7 @@ def _piece_ranges(
 
 
 def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                  cfg: DetectorConfig) -> StillWindows:
+                  cfg: DetectorConfig, accelerate: bool = True) -> StillWindows:
     """Still windows of the pieces ``[lo, hi)`` that last ``min_duration_s``.
 
     Parameters
@@ -690,6 +749,18 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     A window's statistics are those of its own samples (:func:`_exact_window_stats`,
     pieces of one length together).
     """
+    kernel = pieces_kernel() if accelerate else None
+    if kernel is not None and lo.size:  # the same table in one call (selfcal.detect_numba)
+        keep, mean, sd, n, t_start, t_end, temp_mean, psd, partial = kernel(
+            np.asarray(t, dtype=np.float64), np.asarray(x, dtype=np.float64), np.asarray(lo, dtype=np.int64),
+            np.asarray(hi, dtype=np.int64), cfg.min_duration_s)
+        if partial.any():  # temperature readings missing in part of a piece: the finite ones' mean
+            lo_kept = lo[keep]
+            for j in np.flatnonzero(partial).tolist():
+                tt = x[-1, lo_kept[j] : lo_kept[j] + n[j]]
+                temp_mean[j] = float(np.ascontiguousarray(tt[np.isfinite(tt)]).mean())
+        return StillWindows(mean_g=mean, sd_g=sd, n=n, t_start_s=t_start, t_end_s=t_end, temp_c=temp_mean,
+                            pressure_sd_kpa=psd)
     keep = hi - lo >= 2
     keep[keep] = t[hi[keep] - 1] - t[lo[keep]] >= cfg.min_duration_s
     lo, hi = lo[keep], hi[keep]
@@ -711,7 +782,7 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
             # every channel in one call (acc, pressure, temperature): each window of each
             # channel is reduced on its own, so a temperature mean is the mean of its values
             with np.errstate(invalid="ignore", over="ignore"):
-                ch_mean, ch_sd = _exact_window_stats(x, length, lo[r])
+                ch_mean, ch_sd = _exact_window_stats(x, length, lo[r], accelerate)
             mean[r], sd[r] = ch_mean[:, :3], ch_sd[:, :3]
             t_mean = ch_mean[:, -1]
             whole = np.isfinite(t_mean)  # every value finite (a NaN or inf would show)

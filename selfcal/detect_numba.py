@@ -52,6 +52,23 @@ def window_stats_kernel():
     return _kernel(1)
 
 
+def window_codes_kernel():
+    """``(t (n,), x (c, n) float64, w, clip, norm_tol, max_gap, thresholds (c, 4),
+    roll_block, unit_roundoff) -> codes (n - w + 1,) int8`` (OUT, IN, UNSURE): the
+    per-sample tests, the time steps and the sliding sd test of a stretch in one call
+    (``clip`` / ``norm_tol`` NaN: that test off), or None (numba missing or switched off)."""
+    return _kernel(2)
+
+
+def pieces_kernel():
+    """``(t (b,), x (4 + k, b) float64, lo (q,) int64, hi (q,) int64, min_duration_s) ->
+    (keep, mean, sd, n, t_start, t_end, temp, pressure_sd, partial)``: the still pieces'
+    table in one call (:func:`selfcal._detect_jit.pieces_stats`), or None (numba missing
+    or switched off, or its window statistics are not numpy's here)."""
+    kernels = _kernels() if enabled() else None
+    return None if kernels is None or kernels[1] is None else kernels[3]
+
+
 def _kernel(i: int):
     kernels = _kernels() if enabled() else None
     return None if kernels is None else kernels[i]
@@ -62,7 +79,7 @@ _compile_lock = threading.Lock()  # one first-use compilation and check, not one
 
 @functools.lru_cache(maxsize=1)
 def _kernels():
-    """(sd test, window statistics or None), compiled at first use; None without numba,
+    """(sd test, window statistics or None, per-window tests, pieces' table), compiled at first use; None without numba,
     with numba's JIT disabled, or when numba fails here (no cache location, a compiler
     error): the detector then runs its numpy code, with one warning."""
     with _compile_lock:
@@ -88,7 +105,7 @@ def _kernels():
             warnings.warn(f"selfcal: the detector's numba statistics kernel failed its check ({exc!r}); "
                           "using numpy's", RuntimeWarning, stacklevel=2)
             stats = None
-        return jit.sd_codes, stats
+        return jit.sd_codes, stats, jit.window_codes, jit.pieces_stats
 
 
 def _load():

@@ -59,6 +59,85 @@ def test_the_sliding_sd_test_flags_are_the_numpy_codes(seed):
         np.testing.assert_array_equal(fast, slow)
 
 
+def flags_stream(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(t (n,), x (3 + k, n), detector settings) of a stretch that trips every per-window
+    test: near-1 g still stretches with motion, non-finite values on any channel,
+    saturated axes, raw norms off by more than the tolerance, huge values, and time steps
+    that are zero, negative, NaN or past the gap."""
+    k = int(rng.integers(0, 5))
+    n = int(rng.integers(2, 3000))
+    t = np.arange(n) / 20.0 + 1e5 * rng.integers(0, 2)
+    x = np.empty((3 + k, n))
+    x[:3] = (np.array([0.1, -0.2, 0.97]) + rng.normal(0, 10.0 ** rng.uniform(-4, -1.5), (n, 3))).T
+    x[3:] = rng.uniform(0, 200, (k, 1)) + rng.normal(0, 10.0 ** rng.uniform(-1, 2), (k, n))
+    a = int(rng.integers(0, n))
+    x[:, a:a + int(rng.integers(1, 400))] = x[:, a:a + 1]  # flat: below sd_min_g
+    for _ in range(int(rng.integers(0, 6))):
+        i, ch = int(rng.integers(0, n)), int(rng.integers(0, 3 + k))
+        x[ch, i] = rng.choice([np.nan, np.inf, -np.inf, 1e200, -1e300, 1.6, -2.0, 0.0])
+    for _ in range(int(rng.integers(0, 4))):
+        i = int(rng.integers(0, n))
+        t[i:] += rng.choice([0.0, -0.5, 0.3, np.nan, 1e-9])
+    cfg = {"rate_hz": 20.0, "twait_s": float(rng.choice([0.1, 0.5, 1.0, 3.0, 9.0])),
+           "sd_max_g": float(10.0 ** rng.uniform(-3, -1.5)), "sd_min_g": float(rng.choice([0.0, 1e-4])),
+           "norm_tol_raw_g": float(rng.choice([0.01, 0.05, 0.15])),
+           "pressure_sd_max_kpa": float(10.0 ** rng.uniform(-1, 2))}
+    if rng.random() < 0.3:
+        cfg["clip_abs_g"] = False
+    return t, x, cfg
+
+
+@needs_numba
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_every_windows_flags_are_the_numpy_codes(seed):
+    """The one-call kernel of the per-window tests (non-finite values, saturation, the raw
+    norm, time steps, the sliding sd test) gives the numpy code's flags, without and with
+    a calibration (which turns the raw norm test off)."""
+    rng = np.random.default_rng(seed)
+    tripped = 0
+    for _ in range(150):
+        t, x, settings = flags_stream(rng)
+        cfg = detect.DetectorConfig(**settings)
+        to_cal = None if rng.random() < 0.5 else (lambda m: m * 1.01)
+        with np.errstate(all="ignore"):
+            fast = detect._window_flags(t, x, cfg, to_cal, accelerate=True)
+            slow = detect._window_flags(t, x, cfg, to_cal, accelerate=False)
+        np.testing.assert_array_equal(fast, slow)
+        tripped += bool(slow.any()) and not slow.all()
+    assert tripped > 20  # streams with windows both in and out, not all of one kind
+
+
+@needs_numba
+@pytest.mark.parametrize("seed", [21, 22])
+def test_the_pieces_table_is_the_numpy_codes_bit_for_bit(seed):
+    """The one-call table of still pieces: pieces of many lengths (some too short or too
+    brief to keep), with and without pressure channels (one of them NaN at times),
+    temperature missing in part of a piece, in all of it, or past the float range."""
+    rng = np.random.default_rng(seed)
+    for _ in range(200):
+        k = int(rng.integers(0, 5))
+        b = int(rng.integers(1, 3000))
+        t = np.cumsum(rng.uniform(0.0, 0.2, b)) + 1e5 * rng.integers(0, 2)
+        x = np.empty((4 + k, b))
+        x[:3] = rng.normal(0, 1e-3, (3, b)) + rng.normal(0, 1, (3, 1))
+        x[3 : 3 + k] = rng.uniform(0, 200, (k, 1)) + rng.normal(0, 10.0 ** rng.uniform(-2, 2), (k, b))
+        x[-1] = 25.0 + rng.normal(0, 0.1, b)
+        if k and rng.random() < 0.3:  # a pressure channel's sd NaN: np.max's NaN
+            x[3 + int(rng.integers(0, k)), int(rng.integers(0, b))] = rng.choice([np.nan, np.inf])
+        for _ in range(int(rng.integers(0, 4))):  # temperature missing: one reading, a stretch, all
+            a = int(rng.integers(0, b))
+            x[-1, a : a + int(rng.choice([1, 50, b]))] = rng.choice([np.nan, np.inf, 1e308])
+        cuts = np.unique(rng.integers(0, b + 1, int(rng.integers(1, 12))))
+        lo, hi = cuts[:-1].astype(np.int64), cuts[1:].astype(np.int64)
+        cfg = detect.DetectorConfig(min_duration_s=float(rng.choice([0.05, 1.0, 10.0])))
+        with np.errstate(all="ignore"):
+            fast = detect._pieces_table(t, x, lo, hi, cfg, accelerate=True)
+            slow = detect._pieces_table(t, x, lo, hi, cfg, accelerate=False)
+        for name in FIELDS:
+            got, want = getattr(fast, name), getattr(slow, name)
+            assert got.dtype == want.dtype and same_bits(got, want), name
+
+
 @needs_numba
 @pytest.mark.parametrize("seed", [4, 5])
 def test_window_statistics_are_numpys_bit_for_bit(seed):
