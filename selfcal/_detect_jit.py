@@ -205,8 +205,9 @@ def window_stats(x, w, idx):
 @_jit
 def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_roundoff):
     """Every condition of :func:`selfcal.detect._window_flags` but the calibrated norm, per
-    ``w``-sample window of ``x`` (c, n) at times ``t`` (n,): OUT, IN or UNSURE (int8,
-    n - w + 1), in one pass over the samples before the sd test.
+    ``w``-sample window of ``x`` (c, n) at times ``t`` (n,): ``(codes, unsure)``, OUT, IN or
+    UNSURE per window (int8, n - w + 1) and how many are UNSURE, in one pass over the
+    samples before the sd test.
 
     A window is OUT when one of its samples is not finite on some channel, is at or past
     ``clip`` on an axis (NaN: no clip test), or has ``| ||a|| - 1 | >= norm_tol`` (NaN: no
@@ -220,7 +221,7 @@ def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_
     m = n - w + 1
     codes = np.zeros(max(m, 0), dtype=np.int8)  # OUT
     if m <= 0:
-        return codes
+        return codes, 0
     ok = np.zeros(m, dtype=np.bool_)
     last_bad = -1  # the last sample that fails a per-sample test
     last_gap = 0  # the last sample i whose step from i - 1 breaks a window (0: none)
@@ -257,7 +258,7 @@ def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_
             ok[j] = True
             any_ok = True
     if not any_ok:
-        return codes
+        return codes, 0
     if all_finite:
         x0 = x
     else:
@@ -270,10 +271,12 @@ def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_
             for ch in range(c):
                 x0[ch, i] = x[ch, i] if fin else 0.0
     sd = sd_codes(x0, w, thresholds, roll_block, unit_roundoff)
+    unsure = 0
     for j in range(m):
         if ok[j]:
             codes[j] = sd[j]
-    return codes
+            unsure += sd[j] == UNSURE
+    return codes, unsure
 
 
 @_jit
@@ -343,3 +346,37 @@ def pieces_stats(t, x, lo, hi, min_duration):
             psd[j] = top
         j += 1
     return keep, mean, sd, n, t_start, t_end, temp, psd, partial
+
+
+@_jit
+def run_edges(flags, run_open):
+    """The runs of passing windows in ``flags`` (m,) bool, a run open before the first
+    window if ``run_open``: ``(starts, ends)`` int64, the first passing window of each run
+    that opens here and the last passing window of each run that closes here (local
+    indices), as :func:`selfcal.detect.step` takes them from the flags' differences."""
+    m = flags.shape[0]
+    n_starts = 0
+    n_ends = 0
+    prev = run_open
+    for j in range(m):
+        f = flags[j]
+        if f and not prev:
+            n_starts += 1
+        elif prev and not f:
+            n_ends += 1
+        prev = f
+    starts = np.empty(n_starts, dtype=np.int64)
+    ends = np.empty(n_ends, dtype=np.int64)
+    a = 0
+    b = 0
+    prev = run_open
+    for j in range(m):
+        f = flags[j]
+        if f and not prev:
+            starts[a] = j
+            a += 1
+        elif prev and not f:
+            ends[b] = j - 1
+            b += 1
+        prev = f
+    return starts, ends

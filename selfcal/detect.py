@@ -63,14 +63,7 @@ from pydantic import (
     model_validator,
 )
 
-from selfcal.detect_numba import (
-    IN,
-    UNSURE,
-    pieces_kernel,
-    sd_codes_kernel,
-    window_codes_kernel,
-    window_stats_kernel,
-)
+from selfcal.detect_numba import IN, UNSURE, kernels_now
 from selfcal.errors import InputError
 
 __all__ = [
@@ -407,12 +400,28 @@ def state_from_dict(d: dict[str, Any], config: DetectorConfig) -> DetectorState:
 
 
 # ---------------------------------------------------------------------------- kernels
+#: How a stage runs: True, with the numba kernels when they are available (``SELFCAL_NUMBA``
+#: read then); False, with the numpy code; or a tuple from
+#: :func:`selfcal.detect_numba.kernels_now` (or None), read once by :func:`step` for all
+#: the stages of a chunk.
+Accelerate = bool | tuple | None
+
+
+def _accel(accelerate: Accelerate, i: int):
+    """Kernel ``i`` of :func:`selfcal.detect_numba.kernels_now` for ``accelerate``, or None."""
+    if accelerate is True:
+        accelerate = kernels_now()
+    if not accelerate:
+        return None
+    return accelerate[i]
+
+
 # Inside the kernels the samples are held by channel: ``x`` of shape ``(c, n)``, one
 # contiguous row per channel (ax, ay, az in g, then the pressure channels in kPa), so
 # that every sum runs along contiguous memory.
 
 
-def _exact_window_stats(x: np.ndarray, w: int, idx: np.ndarray, accelerate: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def _exact_window_stats(x: np.ndarray, w: int, idx: np.ndarray, accelerate: Accelerate = True) -> tuple[np.ndarray, np.ndarray]:
     """Two-pass mean and sample sd of the ``w``-sample windows that start at ``idx``.
 
     Parameters
@@ -423,9 +432,9 @@ def _exact_window_stats(x: np.ndarray, w: int, idx: np.ndarray, accelerate: bool
         Window length, samples (>= 2, <= n).
     idx : ndarray of int, shape (k,)
         First sample of each window (``0 <= idx <= n - w``).
-    accelerate : bool
+    accelerate : bool or tuple
         Use the numba kernel (:mod:`selfcal.detect_numba`: numpy's sums in numpy's order)
-        when it is available; False forces the numpy code.
+        when it is available; False forces the numpy code (see :data:`Accelerate`).
 
     Returns
     -------
@@ -444,7 +453,7 @@ def _exact_window_stats(x: np.ndarray, w: int, idx: np.ndarray, accelerate: bool
     sd = np.empty((k, c))
     if c == 0 or k == 0:
         return mean, sd
-    kernel = window_stats_kernel() if accelerate else None
+    kernel = _accel(accelerate, 1)
     if kernel is not None:
         return kernel(np.asarray(x, dtype=np.float64), w, np.asarray(idx, dtype=np.int64))
     block = max(1, _BLOCK_VALUES // (w * c))
@@ -522,7 +531,7 @@ def _sd_bounds(sd_min_g: float, sd_max_g: float, pressure_sd_max_kpa: float, k: 
     return lo, hi
 
 
-def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, accelerate: bool = True) -> np.ndarray:
+def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, accelerate: Accelerate = True) -> np.ndarray:
     """Whether every channel's sample sd lies in ``[lo_sd, hi_sd]``, for every
     ``w``-sample sliding window, decided exactly as :func:`_exact_window_stats` decides.
 
@@ -534,9 +543,9 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, acce
         Window length, samples (>= 2, <= n).
     lo_sd, hi_sd : ndarray, shape (c,)
         Bounds per channel, same unit as ``x`` (``lo_sd <= 0``: no lower bound).
-    accelerate : bool
+    accelerate : bool or tuple
         Use the numba kernel (:mod:`selfcal.detect_numba`) when it is available: the
-        same flags, in one pass; False forces the numpy code.
+        same flags, in one pass; False forces the numpy code (see :data:`Accelerate`).
 
     Returns
     -------
@@ -562,7 +571,7 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, acce
     u = _UNIT_ROUNDOFF
     inv_w = 1.0 / w
     thresholds, threshold_array = _sd_thresholds(tuple(lo_sd.tolist()), tuple(hi_sd.tolist()), w)
-    kernel = sd_codes_kernel() if accelerate else None
+    kernel = _accel(accelerate, 0)
     if kernel is not None:  # the same verdicts, in one pass (selfcal.detect_numba)
         codes = kernel(np.asarray(x, dtype=np.float64), w, threshold_array, _ROLL_BLOCK, u)
         ok = codes == IN
@@ -610,7 +619,7 @@ def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, acce
 
 
 def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToCal | None,
-                  accelerate: bool = True) -> np.ndarray:
+                  accelerate: Accelerate = True) -> np.ndarray:
     """Pass/fail of every ``W``-sample sliding window of a stretch of samples.
 
     Parameters
@@ -634,24 +643,24 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
         return np.zeros(0, dtype=bool)
     k = x.shape[0] - 3
     lo_sd, hi_sd = _sd_bounds(cfg.sd_min_g, cfg.sd_max_g, cfg.pressure_sd_max_kpa, k)
-    kernel = window_codes_kernel() if accelerate else None
+    kernel = _accel(accelerate, 2)
     if kernel is not None:  # every test but the calibrated norm in one call (selfcal.detect_numba)
         _, thresholds = _sd_thresholds(tuple(lo_sd.tolist()), tuple(hi_sd.tolist()), w)
         clip = math.nan if cfg.clip_abs_g is None else cfg.clip_abs_g
         norm_tol = math.nan if to_cal is not None else cfg.norm_tol_raw_g
-        codes = kernel(np.asarray(t, dtype=np.float64), np.asarray(x, dtype=np.float64), w, clip, norm_tol,
-                       cfg.max_gap_s, thresholds, _ROLL_BLOCK, _UNIT_ROUNDOFF)
+        codes, n_unsure = kernel(np.asarray(t, dtype=np.float64), np.asarray(x, dtype=np.float64), w, clip,
+                                 norm_tol, cfg.max_gap_s, thresholds, _ROLL_BLOCK, _UNIT_ROUNDOFF)
         ok = codes == IN
-        unsure = np.flatnonzero(codes == UNSURE)
-        if unsure.size == 0 and (to_cal is None or not ok.any()):
+        if n_unsure == 0 and to_cal is None:
             return ok
         with np.errstate(over="ignore", invalid="ignore"):
             finite = np.isfinite(x).all(axis=0)
             x0 = x if finite.all() else np.where(finite, x, 0.0)
-            if unsure.size:
-                _, sd = _exact_window_stats(x0, w, unsure)
+            if n_unsure:
+                unsure = np.flatnonzero(codes == UNSURE)
+                _, sd = _exact_window_stats(x0, w, unsure, accelerate)
                 ok[unsure] = ((sd <= hi_sd) & (sd >= lo_sd)).all(axis=1)
-            return _calibrated_norm(ok, x0, w, cfg, to_cal)
+            return _calibrated_norm(ok, x0, w, cfg, to_cal, accelerate)
     with np.errstate(over="ignore", invalid="ignore"):  # inf/NaN samples fail below
         finite = np.isfinite(x).all(axis=0)
         bad = ~finite
@@ -682,7 +691,7 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
 
 
 def _calibrated_norm(ok: np.ndarray, x0: np.ndarray, w: int, cfg: DetectorConfig, to_cal: ToCal | None,
-                     accelerate: bool = True) -> np.ndarray:
+                     accelerate: Accelerate = True) -> np.ndarray:
     """``ok`` (m,) with the windows whose calibrated mean fails the norm test set False
     (``to_cal`` None: unchanged); ``x0`` (3 + k, n) the samples, every channel of a sample
     with a non-finite value 0.0 (g, kPa)."""
@@ -703,7 +712,7 @@ def _calibrated_norm(ok: np.ndarray, x0: np.ndarray, w: int, cfg: DetectorConfig
 
 def _piece_ranges(
     piece_start: int, limit_end: int, final: bool, cfg: DetectorConfig
-) -> tuple[np.ndarray, int]:
+) -> tuple[list[int], int]:
     """Cut ``[piece_start, limit_end]`` (global sample indices) into pieces.
 
     Full pieces (``max_window_samples``) are cut while they end at or before
@@ -711,23 +720,24 @@ def _piece_ranges(
 
     Returns
     -------
-    starts : ndarray of int64, shape (k,)
+    starts : list of int, length k
         First sample of each piece (the pieces are consecutive: each ends where the
-        next starts, the last at ``next_start - 1``).
+        next starts, the last at ``next_start - 1``); a chunk closes a handful at most
+        (one per ``max_window_s``), so plain ints.
     next_start : int
         First sample of the next piece.
     """
     size = cfg.max_window_samples
     if limit_end < piece_start:
-        return np.zeros(0, dtype=np.int64), piece_start
+        return [], piece_start
     if final:
-        return np.arange(piece_start, limit_end + 1, size, dtype=np.int64), limit_end + 1
+        return list(range(piece_start, limit_end + 1, size)), limit_end + 1
     n_full = (limit_end - piece_start + 1) // size
-    return piece_start + size * np.arange(n_full, dtype=np.int64), piece_start + size * n_full
+    return list(range(piece_start, piece_start + size * n_full, size)), piece_start + size * n_full
 
 
 def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                  cfg: DetectorConfig, accelerate: bool = True) -> StillWindows:
+                  cfg: DetectorConfig, accelerate: Accelerate = True) -> StillWindows:
     """Still windows of the pieces ``[lo, hi)`` that last ``min_duration_s``.
 
     Parameters
@@ -749,7 +759,7 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     A window's statistics are those of its own samples (:func:`_exact_window_stats`,
     pieces of one length together).
     """
-    kernel = pieces_kernel() if accelerate else None
+    kernel = _accel(accelerate, 3)
     if kernel is not None and lo.size:  # the same table in one call (selfcal.detect_numba)
         keep, mean, sd, n, t_start, t_end, temp_mean, psd, partial = kernel(
             np.asarray(t, dtype=np.float64), np.asarray(x, dtype=np.float64), np.asarray(lo, dtype=np.int64),
@@ -809,18 +819,21 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     )
 
 
-def _emit(t: np.ndarray, x: np.ndarray, g0: int, starts: list[np.ndarray], ends: list[int],
-          cfg: DetectorConfig) -> StillWindows:
+def _emit(t: np.ndarray, x: np.ndarray, g0: int, starts: list[list[int]], ends: list[int],
+          cfg: DetectorConfig, accelerate: Accelerate = True) -> StillWindows:
     """Table of the pieces cut by :func:`_piece_ranges` (global indices; ``g0`` is the
     buffer's first; ``ends[i]`` the last sample of the last piece of ``starts[i]``)."""
-    lo_parts, hi_parts = [], []
+    lo: list[int] = []
+    hi: list[int] = []
     for s, e in zip(starts, ends):
-        if s.size:
-            lo_parts.append(s - g0)
-            hi_parts.append(np.append(s[1:], e + 1) - g0)
-    if not lo_parts:
+        if s:
+            lo += s
+            hi += s[1:]
+            hi.append(e + 1)
+    if not lo:
         return StillWindows()
-    return _pieces_table(t, x, np.concatenate(lo_parts), np.concatenate(hi_parts), cfg)
+    return _pieces_table(t, x, np.array(lo, dtype=np.int64) - g0, np.array(hi, dtype=np.int64) - g0, cfg,
+                         accelerate)
 
 
 def _by_channel(acc_g: np.ndarray, pressure_kpa: np.ndarray, temp_c: np.ndarray,
@@ -893,12 +906,13 @@ def step(
     # New test windows: j0 .. n_total - W (global), all starting inside the buffer.
     j0 = max(state.n_seen - w + 1, 0)
     l0 = j0 - g0
-    flags = _window_flags(t[l0:], x[: 3 + kp, l0:], cfg, to_cal)
+    kernels = kernels_now()  # SELFCAL_NUMBA read once for every stage of the chunk
+    flags = _window_flags(t[l0:], x[: 3 + kp, l0:], cfg, to_cal, kernels)
 
     run_open = state.run_open
     piece_start = state.piece_start
     last_end = state.last_end
-    cut_starts: list[np.ndarray] = []
+    cut_starts: list[list[int]] = []
     cut_ends: list[int] = []
     if flags.size:
         if flags.all():  # the common cases (still or moving throughout) without diffs
@@ -906,9 +920,15 @@ def step(
         elif not flags.any():
             starts, ends = [], ([j0 - 1] if run_open else [])
         else:
-            d = np.diff(np.concatenate(([run_open], flags)).astype(np.int8))
-            starts = (np.flatnonzero(d == 1) + j0).tolist()
-            ends = (np.flatnonzero(d == -1) + j0 - 1).tolist()  # last passing window
+            edges = _accel(kernels, 4)
+            if edges is not None:  # the same edges in one call (selfcal.detect_numba)
+                first, last = edges(flags, bool(run_open))
+                starts = (first + j0).tolist()
+                ends = (last + j0).tolist()
+            else:
+                d = np.diff(np.concatenate(([run_open], flags)).astype(np.int8))
+                starts = (np.flatnonzero(d == 1) + j0).tolist()
+                ends = (np.flatnonzero(d == -1) + j0 - 1).tolist()  # last passing window
         # Runs: (first passing window or None if it opened before, last or None if open).
         firsts: list[int | None] = ([None] if run_open else []) + starts
         runs = [(a, ends[i] if i < len(ends) else None) for i, a in enumerate(firsts)]
@@ -947,7 +967,7 @@ def step(
         piece_start=piece_start,
         last_end=last_end,
     )
-    return new_state, _emit(t, x, g0, cut_starts, cut_ends, cfg)
+    return new_state, _emit(t, x, g0, cut_starts, cut_ends, cfg, kernels)
 
 
 def flush_state(state: DetectorState, cfg: DetectorConfig) -> tuple[DetectorState, StillWindows]:

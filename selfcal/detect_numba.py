@@ -35,8 +35,14 @@ OUT, IN, UNSURE = 0, 1, 2
 
 
 def enabled() -> bool:
-    """False when the environment variable ``SELFCAL_NUMBA`` is 0 / false / no / off."""
-    return os.environ.get("SELFCAL_NUMBA", "1").strip().lower() not in ("0", "false", "no", "off")
+    """False when the environment variable ``SELFCAL_NUMBA`` is 0 / false / no / off
+    (read at every call: a process may switch it; the parsing is kept per value)."""
+    return _switched_on(os.environ.get("SELFCAL_NUMBA", "1"))
+
+
+@functools.lru_cache(maxsize=8)
+def _switched_on(value: str) -> bool:
+    return value.strip().lower() not in ("0", "false", "no", "off")
 
 
 def sd_codes_kernel():
@@ -54,7 +60,7 @@ def window_stats_kernel():
 
 def window_codes_kernel():
     """``(t (n,), x (c, n) float64, w, clip, norm_tol, max_gap, thresholds (c, 4),
-    roll_block, unit_roundoff) -> codes (n - w + 1,) int8`` (OUT, IN, UNSURE): the
+    roll_block, unit_roundoff) -> (codes (n - w + 1,) int8, unsure count)`` (OUT, IN, UNSURE): the
     per-sample tests, the time steps and the sliding sd test of a stretch in one call
     (``clip`` / ``norm_tol`` NaN: that test off), or None (numba missing or switched off)."""
     return _kernel(2)
@@ -69,6 +75,17 @@ def pieces_kernel():
     return None if kernels is None or kernels[1] is None else kernels[3]
 
 
+def kernels_now():
+    """The kernels as the environment has them now (one read of ``SELFCAL_NUMBA``), for a
+    caller that makes several detector calls in a row: ``(sd test, window statistics or
+    None, per-window tests, pieces' table or None, run edges)``, or None (numba missing or
+    switched off). The pieces' table is None when the statistics kernel is (it uses it)."""
+    kernels = _kernels() if enabled() else None
+    if kernels is None or kernels[1] is not None:
+        return kernels
+    return kernels[:3] + (None,) + kernels[4:]
+
+
 def _kernel(i: int):
     kernels = _kernels() if enabled() else None
     return None if kernels is None else kernels[i]
@@ -79,7 +96,7 @@ _compile_lock = threading.Lock()  # one first-use compilation and check, not one
 
 @functools.lru_cache(maxsize=1)
 def _kernels():
-    """(sd test, window statistics or None, per-window tests, pieces' table), compiled at first use; None without numba,
+    """(sd test, window statistics or None, per-window tests, pieces' table, run edges), compiled at first use; None without numba,
     with numba's JIT disabled, or when numba fails here (no cache location, a compiler
     error): the detector then runs its numpy code, with one warning."""
     with _compile_lock:
@@ -105,7 +122,7 @@ def _kernels():
             warnings.warn(f"selfcal: the detector's numba statistics kernel failed its check ({exc!r}); "
                           "using numpy's", RuntimeWarning, stacklevel=2)
             stats = None
-        return jit.sd_codes, stats, jit.window_codes, jit.pieces_stats
+        return jit.sd_codes, stats, jit.window_codes, jit.pieces_stats, jit.run_edges
 
 
 def _load():

@@ -139,6 +139,20 @@ def test_the_pieces_table_is_the_numpy_codes_bit_for_bit(seed):
 
 
 @needs_numba
+def test_run_edges_are_the_flags_differences():
+    """Where runs of passing windows open and close, with a run open before or not."""
+    edges = detect_numba.kernels_now()[4]
+    rng = np.random.default_rng(31)
+    for _ in range(300):
+        flags = rng.random(int(rng.integers(0, 60))) < rng.uniform(0, 1)
+        run_open = bool(rng.random() < 0.5)
+        d = np.diff(np.concatenate(([run_open], flags)).astype(np.int8))
+        starts, ends = edges(flags, run_open)
+        np.testing.assert_array_equal(starts, np.flatnonzero(d == 1))
+        np.testing.assert_array_equal(ends, np.flatnonzero(d == -1) - 1)
+
+
+@needs_numba
 @pytest.mark.parametrize("seed", [4, 5])
 def test_window_statistics_are_numpys_bit_for_bit(seed):
     """Lengths around numpy's pairwise-summation boundaries (8, 128, halvings), NaN and
@@ -192,6 +206,7 @@ def test_switched_off_or_disagreeing_kernels_are_not_used(monkeypatch):
     numpy in one bit (a numpy that sums in another order) fails the first-use check."""
     monkeypatch.setenv("SELFCAL_NUMBA", "0")
     assert detect_numba.sd_codes_kernel() is None and detect_numba.window_stats_kernel() is None
+    assert detect_numba.kernels_now() is None
 
     def numpy_stats(x, w, idx):
         return detect._exact_window_stats(x, w, idx, accelerate=False)
