@@ -59,12 +59,14 @@ def sd_codes(x, w, thresholds, roll_block, unit_roundoff):
         k1 = 2 * (length + 1) * u * math.sqrt(length) + u * math.sqrt(w)
         c1 = (2 * (length + 2) + 1) * u + (2 * math.sqrt(w) * k1 + k1 * k1) / w + 6 * u
         c2 = 4 * u * u * w
+        c3 = (math.log2(w) + 32) * u
         overflow = False
         for ch in range(c):
             p = q2[ch, length]
             f = x[ch, lo]
             if p >= 0:
-                margin = 2 * (c1 * p + c2 * abs(f) * math.sqrt(p)) + 1e-300
+                e3 = c3 * (abs(f) + math.sqrt(p))
+                margin = 2 * (c1 * p + c2 * abs(f) * math.sqrt(p) + w * e3 * e3) + 1e-300
             else:
                 margin = math.nan
             if not math.isfinite(margin):
@@ -203,7 +205,7 @@ def window_stats(x, w, idx):
 
 
 @_jit
-def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_roundoff):
+def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_roundoff, exact):
     """Every condition of :func:`selfcal.detect._window_flags` but the calibrated norm, per
     ``w``-sample window of ``x`` (c, n) at times ``t`` (n,): ``(codes, unsure)``, OUT, IN or
     UNSURE per window (int8, n - w + 1) and how many are UNSURE, in one pass over the
@@ -215,8 +217,10 @@ def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_
     ``> max_gap``. The others get :func:`sd_codes`' verdict on the samples with every
     channel of a sample holding a non-finite value set to 0.0 (as the numpy code does
     before its sd test). When no window passes those tests the sd test is not run (every
-    window OUT), as in the numpy code. Sums and comparisons are the numpy code's, in its
-    order (the norm: ``sqrt((ax*ax + ay*ay) + az*az)``)."""
+    window OUT), as in the numpy code. With ``exact`` (a few windows: the numpy code
+    reduces each one) every window that passes the other tests is UNSURE, left to the
+    exact statistics. Sums and comparisons are the numpy code's, in its order (the norm:
+    ``sqrt((ax*ax + ay*ay) + az*az)``)."""
     c, n = x.shape
     m = n - w + 1
     codes = np.zeros(max(m, 0), dtype=np.int8)  # OUT
@@ -259,6 +263,13 @@ def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_
             any_ok = True
     if not any_ok:
         return codes, 0
+    if exact:
+        unsure = 0
+        for j in range(m):
+            if ok[j]:
+                codes[j] = UNSURE
+                unsure += 1
+        return codes, unsure
     if all_finite:
         x0 = x
     else:

@@ -409,11 +409,12 @@ Accelerate = bool | tuple | None
 
 def _accel(accelerate: Accelerate, i: int):
     """Kernel ``i`` of :func:`selfcal.detect_numba.kernels_now` for ``accelerate``, or None."""
-    if accelerate is True:
-        accelerate = kernels_now()
+    if isinstance(accelerate, tuple):
+        return accelerate[i]
     if not accelerate:
         return None
-    return accelerate[i]
+    kernels = kernels_now()  # any true value: the kernels if the environment has them
+    return None if kernels is None else kernels[i]
 
 
 # Inside the kernels the samples are held by channel: ``x`` of shape ``(c, n)``, one
@@ -482,15 +483,25 @@ def _sd_limits(p2: list[float], first: list[float], w: int, length: int, thresho
     roundoff, ``e1 = 2 (L + 1) u sqrt(L p2) + u sqrt(w p2)`` (a window sum of y, L the
     block's samples), ``e2 = (2 (L + 2) + 1) u p2`` (of y^2), is
     ``e2 + (2 sqrt(w p2) e1 + e1^2) / w + 6 u p2 + 4 u^2 w |first| sqrt(p2)``, which is
-    ``c1 p2 + c2 |first| sqrt(p2)``; the margin is twice that.
+    ``c1 p2 + c2 |first| sqrt(p2)``. The reference's own mean is off by at most
+    ``e3 = c3 (|first| + sqrt(p2))`` (``c3 = (log2 w + 32) u``: numpy's pairwise sum and
+    the division, ``|first| + sqrt(p2)`` bounding every ``|x|`` of the block), which adds
+    ``w e3^2`` to its sum of squared deviations; a value far from zero with almost no
+    spread (a stuck channel at 1e155, an sd bound near 1e-17) is decided by that term, and
+    past the float range it overflows (then the slow way). The margin is twice the sum.
     """
     u = _UNIT_ROUNDOFF
     k1 = 2 * (length + 1) * u * math.sqrt(length) + u * math.sqrt(w)
     c1 = (2 * (length + 2) + 1) * u + (2 * math.sqrt(w) * k1 + k1 * k1) / w + 6 * u
     c2 = 4 * u * u * w
+    c3 = (math.log2(w) + 32) * u
     in_hi, out_hi, in_lo, out_lo = [], [], [], []
     for p, f, (hi_in, hi_out, lo_in, lo_out) in zip(p2, first, thresholds):
-        margin = 2 * (c1 * p + c2 * abs(f) * math.sqrt(p)) + 1e-300 if p >= 0 else math.nan
+        if p >= 0:
+            e3 = c3 * (abs(f) + math.sqrt(p))
+            margin = 2 * (c1 * p + c2 * abs(f) * math.sqrt(p) + w * e3 * e3) + 1e-300
+        else:
+            margin = math.nan
         if not math.isfinite(margin):
             return None
         in_hi.append(hi_in - margin)
@@ -644,12 +655,14 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
     k = x.shape[0] - 3
     lo_sd, hi_sd = _sd_bounds(cfg.sd_min_g, cfg.sd_max_g, cfg.pressure_sd_max_kpa, k)
     kernel = _accel(accelerate, 2)
-    if kernel is not None:  # every test but the calibrated norm in one call (selfcal.detect_numba)
+    if kernel is not None and t.dtype == np.float64 and x.dtype == np.float64:
+        # every test but the calibrated norm in one call (selfcal.detect_numba); a few
+        # windows (small chunks) are each reduced exactly, as the numpy code does below
         _, thresholds = _sd_thresholds(tuple(lo_sd.tolist()), tuple(hi_sd.tolist()), w)
         clip = math.nan if cfg.clip_abs_g is None else cfg.clip_abs_g
         norm_tol = math.nan if to_cal is not None else cfg.norm_tol_raw_g
-        codes, n_unsure = kernel(np.asarray(t, dtype=np.float64), np.asarray(x, dtype=np.float64), w, clip,
-                                 norm_tol, cfg.max_gap_s, thresholds, _ROLL_BLOCK, _UNIT_ROUNDOFF)
+        codes, n_unsure = kernel(t, x, w, clip, norm_tol, cfg.max_gap_s, thresholds, _ROLL_BLOCK,
+                                 _UNIT_ROUNDOFF, m <= _SMALL_WINDOWS)
         ok = codes == IN
         if n_unsure == 0 and to_cal is None:
             return ok

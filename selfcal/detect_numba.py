@@ -60,9 +60,11 @@ def window_stats_kernel():
 
 def window_codes_kernel():
     """``(t (n,), x (c, n) float64, w, clip, norm_tol, max_gap, thresholds (c, 4),
-    roll_block, unit_roundoff) -> (codes (n - w + 1,) int8, unsure count)`` (OUT, IN, UNSURE): the
-    per-sample tests, the time steps and the sliding sd test of a stretch in one call
-    (``clip`` / ``norm_tol`` NaN: that test off), or None (numba missing or switched off)."""
+    roll_block, unit_roundoff, exact) -> (codes (n - w + 1,) int8, unsure count)`` (OUT,
+    IN, UNSURE): the per-sample tests, the time steps and the sliding sd test of a
+    stretch in one call (``clip`` / ``norm_tol`` NaN: that test off; ``exact``: no sd
+    test, every window that passes the others UNSURE), or None (numba missing or
+    switched off)."""
     return _kernel(2)
 
 

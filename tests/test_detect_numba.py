@@ -139,6 +139,26 @@ def test_the_pieces_table_is_the_numpy_codes_bit_for_bit(seed):
 
 
 @needs_numba
+def test_any_true_accelerate_and_other_dtypes_keep_the_numpy_flags():
+    """``accelerate`` may be any true value (np.True_, 1), and samples that are not float64
+    are flagged in their own dtype, as the numpy code flags them (a review found float32
+    times cast before their steps were taken)."""
+    rng = np.random.default_rng(41)
+    t, x, settings = flags_stream(rng)
+    cfg = detect.DetectorConfig(**settings)
+    with np.errstate(all="ignore"):
+        want = detect._window_flags(t, x, cfg, None, accelerate=False)
+        for flag in (True, np.True_, 1):
+            np.testing.assert_array_equal(detect._window_flags(t, x, cfg, None, accelerate=flag), want)
+    t32 = np.array([-1e-8, 1.0, 1.05, 1.1, 1.15, 1.2], dtype=np.float32)
+    x32 = np.tile(np.array([[0.0], [0.0], [1.0]], dtype=np.float32), (1, 6))
+    x32 += rng.normal(0, 3e-3, x32.shape).astype(np.float32)
+    cfg = detect.DetectorConfig(rate_hz=20.0, twait_s=0.1, max_gap_s=1.0)
+    np.testing.assert_array_equal(detect._window_flags(t32, x32, cfg, None, accelerate=True),
+                                  detect._window_flags(t32, x32, cfg, None, accelerate=False))
+
+
+@needs_numba
 def test_run_edges_are_the_flags_differences():
     """Where runs of passing windows open and close, with a run open before or not."""
     edges = detect_numba.kernels_now()[4]
