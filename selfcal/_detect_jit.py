@@ -366,18 +366,8 @@ def run_edges(flags, run_open):
     that opens here and the last passing window of each run that closes here (local
     indices), as :func:`selfcal.detect.step` takes them from the flags' differences."""
     m = flags.shape[0]
-    n_starts = 0
-    n_ends = 0
-    prev = run_open
-    for j in range(m):
-        f = flags[j]
-        if f and not prev:
-            n_starts += 1
-        elif prev and not f:
-            n_ends += 1
-        prev = f
-    starts = np.empty(n_starts, dtype=np.int64)
-    ends = np.empty(n_ends, dtype=np.int64)
+    starts = np.empty(m, dtype=np.int64)
+    ends = np.empty(m, dtype=np.int64)
     a = 0
     b = 0
     prev = run_open
@@ -390,4 +380,4 @@ def run_edges(flags, run_open):
             ends[b] = j - 1
             b += 1
         prev = f
-    return starts, ends
+    return starts[:a].copy(), ends[:b].copy()
