@@ -124,7 +124,35 @@ def _kernels():
             warnings.warn(f"selfcal: the detector's numba statistics kernel failed its check ({exc!r}); "
                           "using numpy's", RuntimeWarning, stacklevel=2)
             stats = None
+        try:
+            _compile_as_used(jit, stats is not None)
+        except Exception as exc:  # noqa: BLE001 - an accelerator must never stop the detector
+            warnings.warn(f"selfcal: the detector's numba kernels are not used ({exc!r}); "
+                          "running its numpy code", RuntimeWarning, stacklevel=2)
+            return None
         return jit.sd_codes, stats, jit.window_codes, jit.pieces_stats, jit.run_edges
+
+
+def _compile_as_used(jit, with_stats: bool) -> None:
+    """Call every kernel once on a few samples, with the array layouts the detector passes
+    (a chunk's samples as a contiguous block and as a column slice of one, the cached
+    read-only thresholds), so that numba compiles (or loads from its cache) here, where a
+    failure leaves the numpy code, and not at a detector call."""
+    x = np.zeros((4, 12))
+    x[2] = 1.0
+    t = np.arange(12) / 20.0
+    thresholds = np.array([[1e-3, 1e-3, -np.inf, -np.inf]] * 3)
+    thresholds.setflags(write=False)
+    for tt, xx in ((t, x[:3]), (t[2:], x[:3, 2:])):  # contiguous, and a column slice
+        for exact in (False, True):
+            jit.window_codes(tt, xx, 4, 1.5, 0.15, 0.2, thresholds, 8192, 2.0**-53, exact)
+        jit.sd_codes(xx, 4, thresholds, 8192, 2.0**-53)
+    jit.run_edges(np.array([True, False, True]), False)
+    if with_stats:
+        lo, hi = np.array([0, 6], dtype=np.int64), np.array([6, 12], dtype=np.int64)
+        jit.pieces_stats(t, x, lo, hi, 0.1)
+        for xx in (x, x[:, 2:]):
+            jit.window_stats(xx, 4, np.array([0, 1], dtype=np.int64))
 
 
 def _load():

@@ -251,7 +251,8 @@ def test_switched_off_or_disagreeing_kernels_are_not_used(monkeypatch):
 
 def test_a_numba_that_fails_leaves_the_numpy_code_with_one_warning(monkeypatch):
     """No cache location (a read-only install), a compiler error, kernels whose verdict
-    codes disagree with the front's: the detector runs its numpy code, same windows."""
+    codes disagree with the front's, a kernel that fails at its first call (compiled at
+    first use, before any detector call): the detector runs its numpy code, same windows."""
     import types
 
     data = simulated(7, 20, 0.05)
@@ -263,8 +264,16 @@ def test_a_numba_that_fails_leaves_the_numpy_code_with_one_warning(monkeypatch):
         raise RuntimeError("cannot cache function 'sd_codes': no locator available")
 
     other_codes = types.SimpleNamespace(OUT=1, IN=0, UNSURE=2, sd_codes=None, window_stats=None)
+
+    def fails_to_compile(*args):  # numba's TypingError for a layout it had not seen
+        raise RuntimeError("Failed in nopython mode pipeline (step: nopython frontend)")
+
+    from selfcal import _detect_jit
+    broken_codes = types.SimpleNamespace(**{k: getattr(_detect_jit, k) for k in (
+        "OUT", "IN", "UNSURE", "sd_codes", "window_stats", "pieces_stats", "run_edges")},
+        window_codes=fails_to_compile)
     try:
-        for load in (no_cache, lambda: other_codes):
+        for load in (no_cache, lambda: other_codes, lambda: broken_codes):
             monkeypatch.setattr(detect_numba, "_load", load)
             detect_numba._kernels.cache_clear()
             with pytest.warns(RuntimeWarning, match="numpy code"):
