@@ -11,6 +11,11 @@ from __future__ import annotations
 import numpy as np
 
 
+#: At most this many rows are added row by row (each a vector add: fewer calls than one
+#: ``np.bincount`` per column); more go column by column.
+_FEW_ROWS = 8
+
+
 def sum_by_group(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.ndarray:
     """Per-group sums of ``values``, the result of ``np.add.at(zeros, group, values)``.
 
@@ -32,6 +37,11 @@ def sum_by_group(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.nda
         raise IndexError(f"sum_by_group: groups must be 0 .. {n_groups - 1}, got {group.min()} .. {group.max()}")
     if values.ndim == 1:
         return np.bincount(group, weights=values, minlength=n_groups).astype(float, copy=False)
+    if values.shape[0] <= _FEW_ROWS:  # a service batch's windows: row by row, the same additions
+        out = np.zeros((n_groups, values.shape[1]))
+        for i, g in enumerate(group.tolist()):
+            out[g] += values[i]
+        return out
     out = np.empty((n_groups, values.shape[1]))
     if n_groups == 0:
         return out

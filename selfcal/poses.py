@@ -506,7 +506,8 @@ class PoseStore:
         if (idx >= 0).any():
             pre[idx >= 0] = self.stats[idx[idx >= 0]]
         gated_s = self._gate_one(pre + before, ds)
-        redo = np.unique(ks[gated_s & ~last])  # a gated window with later windows in its group
+        # a gated window with later windows in its group (none when nothing is gated)
+        redo = np.unique(ks[gated_s & ~last]) if gated_s.any() else ()
         for kk in redo:
             pos = np.flatnonzero(ks == kk)
             run = pre[pos[0]].copy()

@@ -7,7 +7,8 @@ from selfcal.groupsum import sum_by_group
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-@pytest.mark.parametrize("shape", [(0,), (1,), (7,), (5000,), (0, 3), (1, 20), (300, 20), (4000, 6)])
+@pytest.mark.parametrize("shape", [(0,), (1,), (7,), (5000,), (0, 3), (1, 20), (2, 20), (8, 20), (9, 20), (300, 20),
+                                   (4000, 6)])
 def test_sums_are_those_of_add_at_bit_for_bit(seed, shape):
     rng = np.random.default_rng(seed)
     k = shape[0]
