@@ -63,7 +63,7 @@ from pydantic import (
     model_validator,
 )
 
-from selfcal.detect_numba import IN, UNSURE, kernels_now
+from selfcal.detect_numba import IN, UNSURE, _kernel, kernels_now
 from selfcal.errors import InputError
 
 __all__ = [
@@ -411,10 +411,7 @@ def _accel(accelerate: Accelerate, i: int):
     """Kernel ``i`` of :func:`selfcal.detect_numba.kernels_now` for ``accelerate``, or None."""
     if isinstance(accelerate, tuple):
         return accelerate[i]
-    if not accelerate:
-        return None
-    kernels = kernels_now()  # any true value: the kernels if the environment has them
-    return None if kernels is None else kernels[i]
+    return _kernel(i) if accelerate else None  # any true value: the kernels if the environment has them
 
 
 # Inside the kernels the samples are held by channel: ``x`` of shape ``(c, n)``, one
@@ -532,14 +529,17 @@ def _sd_thresholds(lo_sd: tuple[float, ...], hi_sd: tuple[float, ...], w: int) -
 
 
 @functools.lru_cache(maxsize=64)
-def _sd_bounds(sd_min_g: float, sd_max_g: float, pressure_sd_max_kpa: float, k: int) -> tuple[np.ndarray, np.ndarray]:
+def _sd_bounds(sd_min_g: float, sd_max_g: float, pressure_sd_max_kpa: float, k: int,
+               w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-channel sd bounds ``(lo (3 + k,), hi (3 + k,))`` of the three axes (g) and ``k``
-    pressure channels (kPa, no lower bound), read-only."""
-    lo = np.array((sd_min_g,) * 3 + (0.0,) * k)
-    hi = np.array((sd_max_g,) * 3 + (pressure_sd_max_kpa,) * k)
+    pressure channels (kPa, no lower bound), and their :func:`_sd_thresholds` array for
+    ``w``-sample windows ``(3 + k, 4)``; all read-only, kept per settings."""
+    lo_t = (sd_min_g,) * 3 + (0.0,) * k
+    hi_t = (sd_max_g,) * 3 + (pressure_sd_max_kpa,) * k
+    lo, hi = np.array(lo_t), np.array(hi_t)
     lo.setflags(write=False)
     hi.setflags(write=False)
-    return lo, hi
+    return lo, hi, _sd_thresholds(lo_t, hi_t, w)[1]
 
 
 def _sd_within(x: np.ndarray, w: int, lo_sd: np.ndarray, hi_sd: np.ndarray, accelerate: Accelerate = True) -> np.ndarray:
@@ -653,12 +653,11 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
     if m <= 0:
         return np.zeros(0, dtype=bool)
     k = x.shape[0] - 3
-    lo_sd, hi_sd = _sd_bounds(cfg.sd_min_g, cfg.sd_max_g, cfg.pressure_sd_max_kpa, k)
+    lo_sd, hi_sd, thresholds = _sd_bounds(cfg.sd_min_g, cfg.sd_max_g, cfg.pressure_sd_max_kpa, k, w)
     kernel = _accel(accelerate, 2)
     if kernel is not None and t.dtype == np.float64 and x.dtype == np.float64:
         # every test but the calibrated norm in one call (selfcal.detect_numba); a few
         # windows (small chunks) are each reduced exactly, as the numpy code does below
-        _, thresholds = _sd_thresholds(tuple(lo_sd.tolist()), tuple(hi_sd.tolist()), w)
         clip = math.nan if cfg.clip_abs_g is None else cfg.clip_abs_g
         norm_tol = math.nan if to_cal is not None else cfg.norm_tol_raw_g
         codes, n_unsure = kernel(t, x, w, clip, norm_tol, cfg.max_gap_s, thresholds, _ROLL_BLOCK,

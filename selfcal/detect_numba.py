@@ -58,30 +58,13 @@ def window_stats_kernel():
     return _kernel(1)
 
 
-def window_codes_kernel():
-    """``(t (n,), x (c, n) float64, w, clip, norm_tol, max_gap, thresholds (c, 4),
-    roll_block, unit_roundoff, exact) -> (codes (n - w + 1,) int8, unsure count)`` (OUT,
-    IN, UNSURE): the per-sample tests, the time steps and the sliding sd test of a
-    stretch in one call (``clip`` / ``norm_tol`` NaN: that test off; ``exact``: no sd
-    test, every window that passes the others UNSURE), or None (numba missing or
-    switched off)."""
-    return _kernel(2)
-
-
-def pieces_kernel():
-    """``(t (b,), x (4 + k, b) float64, lo (q,) int64, hi (q,) int64, min_duration_s) ->
-    (keep, mean, sd, n, t_start, t_end, temp, pressure_sd, partial)``: the still pieces'
-    table in one call (:func:`selfcal._detect_jit.pieces_stats`), or None (numba missing
-    or switched off, or its window statistics are not numpy's here)."""
-    kernels = _kernels() if enabled() else None
-    return None if kernels is None or kernels[1] is None else kernels[3]
-
-
 def kernels_now():
     """The kernels as the environment has them now (one read of ``SELFCAL_NUMBA``), for a
     caller that makes several detector calls in a row: ``(sd test, window statistics or
     None, per-window tests, pieces' table or None, run edges)``, or None (numba missing or
-    switched off). The pieces' table is None when the statistics kernel is (it uses it)."""
+    switched off). The pieces' table is None when the statistics kernel is (it uses it).
+    Their signatures are those of :mod:`selfcal._detect_jit` (``sd_codes``,
+    ``window_stats``, ``window_codes``, ``pieces_stats``, ``run_edges``)."""
     kernels = _kernels() if enabled() else None
     if kernels is None or kernels[1] is not None:
         return kernels
@@ -89,7 +72,8 @@ def kernels_now():
 
 
 def _kernel(i: int):
-    kernels = _kernels() if enabled() else None
+    """Kernel ``i`` of :func:`kernels_now`, or None."""
+    kernels = kernels_now()
     return None if kernels is None else kernels[i]
 
 
@@ -98,9 +82,10 @@ _compile_lock = threading.Lock()  # one first-use compilation and check, not one
 
 @functools.lru_cache(maxsize=1)
 def _kernels():
-    """(sd test, window statistics or None, per-window tests, pieces' table, run edges), compiled at first use; None without numba,
-    with numba's JIT disabled, or when numba fails here (no cache location, a compiler
-    error): the detector then runs its numpy code, with one warning."""
+    """(sd test, window statistics or None, per-window tests, pieces' table, run edges),
+    compiled at first use; None without numba, with numba's JIT disabled, or when numba
+    fails here (no cache location, a compiler error): the detector then runs its numpy
+    code, with one warning."""
     with _compile_lock:
         try:
             jit = _load()
