@@ -73,6 +73,8 @@ def segment_start_states(
     tau_h_s: np.ndarray,
     on_foot: np.ndarray,
     temp_init_c: float,
+    *,
+    kernel=None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Temperature and walking heat at the start of every segment.
 
@@ -84,16 +86,38 @@ def segment_start_states(
         Per-segment model constants (see :func:`temperature_at`).
     temp_init_c : float
         Temperature at time 0.
+    kernel : optional
+        The planner's numba kernels to use (:func:`selfcal.sim.plan_numba.kernels`, the
+        default when they are there); the Python recurrence otherwise. Same results.
 
     Returns
     -------
     temp0_c, heat0_c : ndarray, shape (m,), degC
     """
-    m = len(dur_s)
+    if kernel is None:
+        from selfcal.sim import plan_numba
+
+        kernel = plan_numba.kernels()
+        if kernel is None:
+            return start_states_python(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot, temp_init_c)
+    eh, et, ratio, base = _recurrence_terms(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot)
+    return kernel.start_states(eh, et, ratio, base, np.ascontiguousarray(heat_target_c, dtype=float),
+                               np.ascontiguousarray(on_foot, dtype=bool), float(temp_init_c))
+
+
+def _recurrence_terms(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot):
     eh = np.exp(-dur_s / tau_h_s)
     et = np.exp(-dur_s / tau_t_s)
     ratio = tau_h_s / (tau_h_s - tau_t_s)
     base = target_c + np.where(on_foot, heat_target_c, 0.0)
+    return eh, et, ratio, base
+
+
+def start_states_python(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot,
+                        temp_init_c: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`segment_start_states` in Python (the reference of its numba kernel)."""
+    m = len(dur_s)
+    eh, et, ratio, base = _recurrence_terms(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot)
     temp0 = np.empty(m)
     heat0 = np.empty(m)
     t, h = float(temp_init_c), 0.0

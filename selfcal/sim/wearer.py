@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from selfcal.sim import plan_numba
 from selfcal.sim.config import LogNormalDuration, SimConfig
 from selfcal.sim.temperature import segment_start_states
 
@@ -157,7 +158,8 @@ class _Builder:
     def __init__(self, cfg: SimConfig, rng: np.random.Generator):
         self.cfg = cfg
         self.rng = rng
-        self.rows: list[tuple] = []
+        self.rows: list[tuple] = []  # the latest rows, after those in ``blocks``
+        self.blocks: list[np.ndarray] = []  # earlier rows, (k, len(_COLUMNS)) each
         self.t = 0.0
         self.orient = (0.0, 0.0)
         self.load = (0.0, 0.0, 0.0, 0.0)
@@ -173,8 +175,26 @@ class _Builder:
                              ("stairs", a.from_stairs))}
 
     # -- primitives -------------------------------------------------------------
+    def last_row(self):
+        """The latest row (a tuple, or a row of the last block), or None."""
+        if self.rows:
+            return self.rows[-1]
+        return self.blocks[-1][-1] if self.blocks and len(self.blocks[-1]) else None
+
+    def add_block(self, rows: np.ndarray) -> None:
+        """Append rows planned elsewhere, (k, len(_COLUMNS)) float64, after the rows so far."""
+        if self.rows:
+            self.blocks.append(np.array(self.rows, dtype=float))
+            self.rows = []
+        self.blocks.append(rows)
+
+    def table(self) -> np.ndarray:
+        """Every row so far, (m, len(_COLUMNS)) float64."""
+        parts = self.blocks + ([np.array(self.rows, dtype=float)] if self.rows else [])
+        return np.concatenate(parts) if parts else np.empty((0, len(_COLUMNS)))
+
     def still(self, dur: float, act: int, orient: tuple[float, float], sd_g: float, load) -> None:
-        last = self.rows[-1] if self.rows else None
+        last = self.last_row()
         if last is not None and last[2] == STILL and (last[3], last[4]) == tuple(orient):
             sid = last[-1]  # continues the previous still period
         else:
@@ -316,7 +336,70 @@ class _Builder:
         self.move(d, HANDLING, orient, p.handling_sd_g, load=(0.0, 0.0, 0.0, 0.0))
 
     def worn(self, total: float) -> None:
-        """Semi-Markov chain of sit / stand / walk / stairs for ``total`` seconds."""
+        """Semi-Markov chain of sit / stand / walk / stairs for ``total`` seconds (the
+        numba kernel when it is there and on, the same rows and draws; else Python)."""
+        kernels = plan_numba.kernels()
+        if kernels is None:
+            self.worn_python(total)
+        else:
+            self.worn_compiled(kernels.worn, total)
+
+    def kernel_inputs(self) -> tuple:
+        """The planner's constants as the kernel takes them (built once per builder)."""
+        if getattr(self, "_kernel_inputs", None) is None:
+            from selfcal.sim import _plan_jit as J
+
+            a, p, g = self.cfg.activity, self.cfg.posture, self.cfg.gait
+            par = np.zeros(J.N_PAR)
+            for slot, d in ((J.P_SIT, a.sit), (J.P_STAND, a.stand), (J.P_WALK_SHORT, a.walk_short),
+                            (J.P_WALK_LONG, a.walk_long), (J.P_STAIRS, a.stairs), (J.P_STAND_QUIET, p.stand_quiet),
+                            (J.P_STAND_SHIFT, p.stand_shift), (J.P_SIT_QUIET, p.sit_quiet),
+                            (J.P_SIT_FIDGET, p.sit_fidget)):
+                par[slot:slot + 4] = (d.median_s, np.log(d.gsd), d.min_s, d.max_s)
+            par[J.P_WALK_LONG_FRACTION] = a.walk_long_fraction
+            par[J.P_SHOE_PITCH] = self.shoe_pitch
+            par[J.P_STAND_TILT_RAD] = math.radians(p.stand_tilt_sd_deg)
+            par[J.P_STAND_SHIFT_SD_G] = p.stand_shift_sd_g
+            par[J.P_STAND_SWAY_G] = p.stand_sway_sd_mg * 1e-3
+            par[J.P_SIT_FACTOR] = self.cfg.pressure.sit_factor
+            par[J.P_SIT_SWAY_G] = p.sit_sway_sd_mg * 1e-3
+            par[J.P_SIT_FLAT_TILT_RAD] = math.radians(p.sit_flat_tilt_sd_deg)
+            par[J.P_SIT_HEEL_PITCH_DEG:J.P_SIT_HEEL_PITCH_DEG + 2] = p.sit_heel_pitch_deg
+            par[J.P_SIT_TOES_PITCH_DEG:J.P_SIT_TOES_PITCH_DEG + 2] = p.sit_toes_pitch_deg
+            par[J.P_SIT_CROSSED_ROLL_DEG:J.P_SIT_CROSSED_ROLL_DEG + 2] = p.sit_crossed_roll_deg
+            par[J.P_SIT_CROSSED_SWAY_G] = p.sit_crossed_sway_sd_mg * 1e-3
+            par[J.P_SIT_FIDGET_SD_G] = p.sit_fidget_sd_g
+            par[[J.P_STAIRS_CYCLE_S, J.P_STAIRS_STRIDE_M, J.P_CYCLE_S, J.P_CYCLE_SD_S]] = (
+                g.stairs_cycle_s, g.stairs_stride_length_m, g.cycle_s, g.cycle_sd_s)
+            par[[J.P_STRIDE_M, J.P_STRIDE_SD_M, J.P_SLOPE_SD_DEG]] = (
+                g.stride_length_m, g.stride_length_sd_m, g.slope_sd_deg)
+            states = ("sit", "stand", "walk", "stairs")  # the kernel's state codes 0..3
+            next_code = np.zeros((4, 4), dtype=np.int64)
+            next_cdf = np.ones((4, 4))
+            next_len = np.zeros(4, dtype=np.int64)
+            for i, name in enumerate(states):
+                names, cdf = self._next_state[name]
+                next_code[i, :len(names)] = [states.index(x) for x in names]
+                next_cdf[i, :len(cdf)] = cdf
+                next_len[i] = len(cdf)
+            self._kernel_inputs = (par, self._sit_cdf, next_code, next_cdf, next_len)
+        return self._kernel_inputs
+
+    def worn_compiled(self, kernel, total: float) -> None:
+        """:meth:`worn` by the numba kernel (:mod:`selfcal.sim._plan_jit`)."""
+        last = self.last_row()
+        last4 = np.array([-1.0, 0.0, 0.0, -1.0] if last is None else [last[2], last[3], last[4], last[-1]])
+        orient = np.array(self.orient, dtype=float)
+        load = np.array(self.load, dtype=float)
+        rows, t, next_still = kernel(self.rng, float(total), *self.kernel_inputs(), float(self.t), orient, load,
+                                     last4, int(self.next_still))
+        if len(rows):
+            self.add_block(rows)
+        self.t, self.next_still = t, int(next_still)
+        self.orient, self.load = (float(orient[0]), float(orient[1])), tuple(load.tolist())
+
+    def worn_python(self, total: float) -> None:
+        """:meth:`worn` in Python (the reference the kernel is checked against)."""
         a = self.cfg.activity
         rng = self.rng
         end = self.t + total
@@ -397,7 +480,7 @@ def make_schedule(config: SimConfig, rng: np.random.Generator, days: float, rate
 
 
 def _finish(b: _Builder, config: SimConfig, rate: float, total_s: float, day_draws: np.ndarray) -> Schedule:
-    arr = np.array(b.rows, dtype=float)
+    arr = b.table()
     cols = {name: arr[:, i] for i, name in enumerate(_COLUMNS)}
     t_start = np.r_[0.0, np.cumsum(cols["dur_s"])[:-1]]
     keep = t_start < total_s
@@ -434,3 +517,4 @@ def _finish(b: _Builder, config: SimConfig, rate: float, total_s: float, day_dra
         heat_target_c=heat_t, tau_t_s=tau_t, tau_h_s=tau_h, on_foot=on_foot, days=day_draws,
         stand_kpa=stand_kpa,
     )
+
