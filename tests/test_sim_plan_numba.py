@@ -35,7 +35,7 @@ CONFIGS = {
 def schedule(monkeypatch, on: bool, cfg: SimConfig, seed: int, days: float):
     """The schedule and the generator's state after it, by the kernels as compiled (not
     through their first-use check, which would hide a kernel that differs) or in Python."""
-    monkeypatch.setattr(plan_numba, "kernels", plan_numba._load if on else lambda: None)
+    monkeypatch.setattr(plan_numba, "kernels", (lambda days=None: plan_numba._load()) if on else lambda days=None: None)
     rng = np.random.default_rng(seed)
     return wearer.make_schedule(cfg, rng, days), rng.bit_generator.state
 
@@ -67,6 +67,20 @@ def test_the_kernels_pass_their_first_use_check_where_numba_is(monkeypatch, recw
     assert not [w for w in recwarn if "planner" in str(w.message)]
     monkeypatch.setenv("SELFCAL_NUMBA", "0")
     assert plan_numba.kernels() is None
+
+
+@needs_numba
+def test_a_short_plan_does_not_load_the_kernels_but_uses_them_once_loaded(monkeypatch):
+    """Below LOAD_FOR_DAYS the first load is not paid for one plan; once loaded they are used."""
+    monkeypatch.setenv("SELFCAL_NUMBA", "1")
+    plan_numba._checked.cache_clear()
+    try:
+        assert plan_numba.kernels(plan_numba.LOAD_FOR_DAYS / 2) is None
+        assert plan_numba._checked.cache_info().currsize == 0
+        assert plan_numba.kernels(plan_numba.LOAD_FOR_DAYS) is not None
+        assert plan_numba.kernels(0.1) is not None
+    finally:
+        plan_numba._checked.cache_clear()
 
 
 @needs_numba

@@ -21,12 +21,26 @@ import warnings
 from types import SimpleNamespace
 
 
-def kernels() -> SimpleNamespace | None:
+#: A plan shorter than this (days) is made in Python unless the kernels are loaded
+#: already: their first load in a process (0.3-0.7 s from numba's cache, longer to
+#: compile) costs about what the Python planner takes for ~10 days (30-50 ms a day).
+LOAD_FOR_DAYS = 10.0
+
+
+def kernels(days: float | None = None) -> SimpleNamespace | None:
     """``worn`` and ``start_states`` (:mod:`selfcal.sim._plan_jit`), or None (numba missing,
-    switched off by ``SELFCAL_NUMBA``, or not the Python planner's results here)."""
+    switched off by ``SELFCAL_NUMBA``, or not the Python planner's results here).
+
+    ``days``: the length of the plan about to be made; shorter than :data:`LOAD_FOR_DAYS`,
+    it gets the kernels only if they are loaded already (None: load them regardless).
+    """
     from selfcal.detect_numba import enabled
 
-    return _checked() if enabled() else None
+    if not enabled():
+        return None
+    if days is not None and days < LOAD_FOR_DAYS and _checked.cache_info().currsize == 0:
+        return None
+    return _checked()
 
 
 _lock = threading.Lock()

@@ -74,7 +74,7 @@ def segment_start_states(
     on_foot: np.ndarray,
     temp_init_c: float,
     *,
-    kernel=None,
+    kernel="auto",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Temperature and walking heat at the start of every segment.
 
@@ -87,19 +87,20 @@ def segment_start_states(
     temp_init_c : float
         Temperature at time 0.
     kernel : optional
-        The planner's numba kernels to use (:func:`selfcal.sim.plan_numba.kernels`, the
-        default when they are there); the Python recurrence otherwise. Same results.
+        The planner's numba kernels (:func:`selfcal.sim.plan_numba.kernels`), None for the
+        Python recurrence, or ``"auto"`` (default): the kernels when they are there. The
+        same results either way.
 
     Returns
     -------
     temp0_c, heat0_c : ndarray, shape (m,), degC
     """
-    if kernel is None:
+    if isinstance(kernel, str) and kernel == "auto":
         from selfcal.sim import plan_numba
 
         kernel = plan_numba.kernels()
-        if kernel is None:
-            return start_states_python(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot, temp_init_c)
+    if kernel is None:
+        return start_states_python(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot, temp_init_c)
     eh, et, ratio, base = _recurrence_terms(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot)
     return kernel.start_states(eh, et, ratio, base, np.ascontiguousarray(heat_target_c, dtype=float),
                                np.ascontiguousarray(on_foot, dtype=bool), float(temp_init_c))

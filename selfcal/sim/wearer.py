@@ -160,6 +160,7 @@ class _Builder:
         self.rng = rng
         self.rows: list[tuple] = []  # the latest rows, after those in ``blocks``
         self.blocks: list[np.ndarray] = []  # earlier rows, (k, len(_COLUMNS)) each
+        self.kernels = None  # the planner's numba kernels (plan_numba.kernels), or None: Python
         self.t = 0.0
         self.orient = (0.0, 0.0)
         self.load = (0.0, 0.0, 0.0, 0.0)
@@ -338,7 +339,7 @@ class _Builder:
     def worn(self, total: float) -> None:
         """Semi-Markov chain of sit / stand / walk / stairs for ``total`` seconds (the
         numba kernel when it is there and on, the same rows and draws; else Python)."""
-        kernels = plan_numba.kernels()
+        kernels = self.kernels
         if kernels is None:
             self.worn_python(total)
         else:
@@ -441,6 +442,7 @@ def make_schedule(config: SimConfig, rng: np.random.Generator, days: float, rate
     rate = float(rate_hz or config.ble.rate_hz)
     total_s = float(days) * SECONDS_PER_DAY
     b = _Builder(config, rng)
+    b.kernels = plan_numba.kernels(days)
     dc, tc = config.day, config.temperature
     n_days = int(np.ceil(days)) + 1
     day_draws = np.column_stack([
@@ -505,7 +507,8 @@ def _finish(b: _Builder, config: SimConfig, rate: float, total_s: float, day_dra
     tau_t = np.where(on_foot, tc.tau_on_s, tc.tau_off_s)
     tau_h = np.full(len(n), tc.tau_walk_s)
     tau_h = np.where(np.isclose(tau_h, tau_t), tau_h * 1.001, tau_h)
-    temp0, heat0 = segment_start_states(dur, target, heat_t, tau_t, tau_h, on_foot, float(ambient[0]))
+    temp0, heat0 = segment_start_states(dur, target, heat_t, tau_t, tau_h, on_foot, float(ambient[0]),
+                                        kernel=b.kernels)
     pc = config.pressure
     stand_kpa = np.asarray(pc.stand_kpa) * np.exp(pc.wearer_sd * b.rng.standard_normal(4))
     return Schedule(
