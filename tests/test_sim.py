@@ -391,6 +391,20 @@ def test_config_validation_and_toml_defaults():
         SimConfig.from_section({"ble": {"packet_loss_rate": 1.5}})
     with pytest.raises(InputError, match="unknown effect"):
         SimConfig().with_effects(["magnetism"])
+    # ranges drawn from uniformly, and durations the planner can alternate: refused by name
+    # (numpy's uniform would raise on some of them deep in a plan; numba's does not check)
+    for bad, field in (({"posture": {"sit_heel_pitch_deg": [35.0, 10.0]}}, "sit_heel_pitch_deg"),
+                       ({"posture": {"sit_toes_pitch_deg": [-1e308, 1e308]}}, "sit_toes_pitch_deg"),
+                       ({"posture": {"sit_crossed_roll_deg": [15.0, float("inf")]}}, "sit_crossed_roll_deg"),
+                       ({"temperature": {"foot_c": [33.0, 28.0]}}, "foot_c"),
+                       ({"posture": {"stand_quiet": {"median_s": 1e-300, "gsd": 1.0, "min_s": 1e-300,
+                                                     "max_s": 1e-300}}}, r"stand_quiet\.min_s"),
+                       ({"activity": {"sit": {"median_s": 600, "gsd": float("nan"), "min_s": 60,
+                                              "max_s": 10800}}}, r"sit\.gsd")):
+        with pytest.raises(InputError, match=field):
+            SimConfig.from_section(bad)
+    assert SimConfig.from_section({"posture": {"sit_heel_pitch_deg": [20.0, 20.0]}}).posture.sit_heel_pitch_deg == (
+        20.0, 20.0)
 
 
 def test_truth_round_trip(tmp_path):

@@ -1,6 +1,7 @@
 """The simulator planner's optional numba kernels (selfcal.sim.plan_numba) plan what its
-Python code does, bit for bit: every column of a schedule and the generator's state
-after it, for several wearers, lengths and configurations; a kernel that fails or
+Python code does, bit for bit: every row the planner builds (before the rows are cut to
+sample indices), the builder's state, every column of the schedule and the generator's
+state after it, for several wearers, lengths and configurations; a kernel that fails or
 differs is not used, and the Python code plans the same schedule."""
 
 from __future__ import annotations
@@ -17,93 +18,118 @@ from selfcal.sim.config import SimConfig
 needs_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
                                  reason="numba is not installed (pip install 'selfcal[fast]')")
 
-CONFIGS = {
-    "default": {},
-    # every state can follow every other, long walks common, the rarer sitting postures common
-    "busy": {"activity": {"from_sit": {"stand": 0.5, "walk": 0.3, "stairs": 0.2},
-                          "from_stairs": {"walk": 0.4, "stand": 0.3, "sit": 0.1, "stairs": 0.2},
-                          "walk_long_fraction": 0.5},
-             "posture": {"sit_flat_p": 0.1, "sit_heel_p": 0.3, "sit_toes_p": 0.3, "sit_crossed_p": 0.3,
-                         "stand_tilt_sd_deg": 0.0, "sit_sway_sd_mg": 0.0}},
-    # short bouts: many postures an hour, and still pieces split at the 30-min bound
-    "sitting": {"activity": {"from_stand": {"sit": 1.0}, "sit": {"median_s": 7200, "gsd": 1.5, "min_s": 60,
-                                                                 "max_s": 10800}},
-                "posture": {"sit_quiet": {"median_s": 2400, "gsd": 2.0, "min_s": 1, "max_s": 7200}}},
-}
+CONFIGS = dict(plan_numba.CHECK_SECTIONS, **{
+    # short quiet periods and long moves, walks only long, tilt-free standing
+    "restless": {"activity": {"walk_long_fraction": 1.0},
+                 "posture": {"stand_quiet": {"median_s": 0.5, "gsd": 1.0, "min_s": 0.5, "max_s": 0.5},
+                             "stand_shift": {"median_s": 3.0, "gsd": 2.0, "min_s": 0.4, "max_s": 20},
+                             "sit_heel_pitch_deg": [20.0, 20.0]}},
+})
 
 
-def schedule(monkeypatch, on: bool, cfg: SimConfig, seed: int, days: float):
-    """The schedule and the generator's state after it, by the kernels as compiled (not
-    through their first-use check, which would hide a kernel that differs) or in Python."""
-    monkeypatch.setattr(plan_numba, "kernels", (lambda days=None: plan_numba._load()) if on else lambda days=None: None)
+@pytest.fixture
+def compiled():
+    """The kernels as compiled, not through their first-use check (which would hide a
+    kernel that differs by planning in Python)."""
+    k = plan_numba._load()
+    if k is None:
+        pytest.skip("numba's JIT is disabled (NUMBA_DISABLE_JIT): the kernels would run as Python")
+    return k
+
+
+def plan(monkeypatch, kernels, cfg: SimConfig, seed: int, days: float):
+    """The schedule, the planner's rows and final state (captured at ``_finish``) and the
+    generator's state after the plan, with ``kernels`` (None: the Python planner)."""
+    monkeypatch.setattr(plan_numba, "kernels", lambda days=None: kernels)
+    seen = {}
+    finish = wearer._finish
+
+    def capture(b, *args):
+        seen.update(table=b.table(), t=b.t, orient=b.orient, load=b.load, next_still=b.next_still)
+        return finish(b, *args)
+
+    monkeypatch.setattr(wearer, "_finish", capture)
     rng = np.random.default_rng(seed)
-    return wearer.make_schedule(cfg, rng, days), rng.bit_generator.state
+    schedule = wearer.make_schedule(cfg, rng, days)
+    monkeypatch.undo()
+    return schedule, seen, rng.bit_generator.state
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return (a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
+            and np.array_equal(np.signbit(a), np.signbit(b)))
 
 
 @needs_numba
 @pytest.mark.parametrize("name", sorted(CONFIGS))
 @pytest.mark.parametrize("seed, days", [(1, 0.2), (2, 1.0), (3, 4.5)])
-def test_the_kernels_plan_the_python_schedule_bit_for_bit(monkeypatch, name, seed, days):
+def test_the_kernels_plan_the_python_schedule_bit_for_bit(monkeypatch, compiled, name, seed, days):
     cfg = SimConfig.from_section(CONFIGS[name])
-    fast, fast_state = schedule(monkeypatch, True, cfg, seed, days)
-    slow, slow_state = schedule(monkeypatch, False, cfg, seed, days)
-    assert len(fast) > 0 and len(fast) == len(slow)
+    fast, fast_rows, fast_state = plan(monkeypatch, compiled, cfg, seed, days)
+    slow, slow_rows, slow_state = plan(monkeypatch, None, cfg, seed, days)
+    assert len(slow_rows["table"]) > 0
+    assert same_bits(fast_rows.pop("table"), slow_rows.pop("table"))  # the raw durations, not only the indices
+    assert fast_rows == slow_rows
     for f in dataclasses.fields(slow):
         a, b = getattr(fast, f.name), getattr(slow, f.name)
-        if isinstance(b, np.ndarray):
-            assert a.dtype == b.dtype, f.name
-            assert np.array_equal(a, b, equal_nan=True), f.name
-            assert np.array_equal(np.signbit(a), np.signbit(b)), f.name
-        else:
-            assert a == b, f.name
+        assert same_bits(a, b) if isinstance(b, np.ndarray) else a == b, f.name
     assert fast_state == slow_state  # the draws after the plan (the simulation's) are the same
 
 
 @needs_numba
-def test_the_kernels_pass_their_first_use_check_where_numba_is(monkeypatch, recwarn):
+def test_the_kernels_pass_their_first_use_check_where_numba_is(monkeypatch, compiled, recwarn):
     monkeypatch.setenv("SELFCAL_NUMBA", "1")
-    plan_numba._checked.cache_clear()
-    assert plan_numba.kernels() is not None
-    assert not [w for w in recwarn if "planner" in str(w.message)]
-    monkeypatch.setenv("SELFCAL_NUMBA", "0")
-    assert plan_numba.kernels() is None
+    plan_numba.reset()
+    try:
+        assert plan_numba.kernels() is not None
+        assert not [w for w in recwarn if "planner" in str(w.message)]
+        monkeypatch.setenv("SELFCAL_NUMBA", "0")
+        assert plan_numba.kernels() is None
+    finally:
+        plan_numba.reset()
 
 
 @needs_numba
-def test_a_short_plan_does_not_load_the_kernels_but_uses_them_once_loaded(monkeypatch):
-    """Below LOAD_FOR_DAYS the first load is not paid for one plan; once loaded they are used."""
+def test_a_short_plan_does_not_load_the_kernels_but_uses_them_once_loaded(monkeypatch, compiled):
+    """Below LOAD_FOR_DAYS the first load is not paid for one plan; once loaded they are
+    used; the temperature recurrence alone never loads them."""
     monkeypatch.setenv("SELFCAL_NUMBA", "1")
-    plan_numba._checked.cache_clear()
+    plan_numba.reset()
     try:
         assert plan_numba.kernels(plan_numba.LOAD_FOR_DAYS / 2) is None
-        assert plan_numba._checked.cache_info().currsize == 0
+        temperature.segment_start_states(np.ones(3), np.ones(3), np.zeros(3), np.full(3, 100.0),
+                                         np.full(3, 50.0), np.ones(3, bool), 20.0)
+        assert not plan_numba.loaded()
         assert plan_numba.kernels(plan_numba.LOAD_FOR_DAYS) is not None
         assert plan_numba.kernels(0.1) is not None
     finally:
-        plan_numba._checked.cache_clear()
+        plan_numba.reset()
 
 
 @needs_numba
-def test_the_temperature_recurrence_kernel_gives_the_python_states():
+def test_the_temperature_recurrence_kernel_gives_the_python_states(compiled):
     rng = np.random.default_rng(4)
     m = 5000
     args = (rng.uniform(1, 8000, m), rng.uniform(10, 36, m), np.where(rng.random(m) < 0.3, 3.0, 0.0),
             rng.uniform(200, 4000, m), rng.uniform(60, 600, m), rng.random(m) < 0.5, 19.0)
-    for a, b in zip(temperature.segment_start_states(*args, kernel=plan_numba._load()),
+    args[1][:5] = [0.0, -0.0, np.inf, np.nan, -1e300]
+    for a, b in zip(temperature.segment_start_states(*args, kernel=compiled),
                     temperature.start_states_python(*args)):
-        assert np.array_equal(a, b)
+        assert same_bits(a, b)
 
 
 @needs_numba
-def test_kernels_that_fail_or_differ_leave_the_python_planner_with_one_warning(monkeypatch):
-    """No numba, a compiler error, a kernel one ulp off: the Python code plans, the same
-    schedule; the first-use check sees a kernel that differs in one row or one draw."""
+def test_kernels_that_fail_or_differ_leave_the_python_planner_with_one_warning(monkeypatch, compiled):
+    """No numba, a compiler error, a kernel one ulp off, one that draws once more, one
+    that cuts still periods at another length: the Python code plans, the same schedule."""
     import types
+
+    from selfcal.sim import _plan_jit
 
     cfg = SimConfig()
     monkeypatch.setenv("SELFCAL_NUMBA", "0")
     rng = np.random.default_rng(9)
-    want, want_state = wearer.make_schedule(cfg, rng, 1.5), rng.bit_generator.state
+    want, want_state = wearer.make_schedule(cfg, rng, 12.0), rng.bit_generator.state
     monkeypatch.setenv("SELFCAL_NUMBA", "1")
 
     def no_numba():
@@ -112,71 +138,41 @@ def test_kernels_that_fail_or_differ_leave_the_python_planner_with_one_warning(m
     def fails_to_compile():
         raise RuntimeError("Failed in nopython mode pipeline (step: nopython frontend)")
 
-    def python_worn(rng, total, *rest):  # the Python planner, behind the kernel's signature
-        return _python_as_kernel(rng, total, *rest)
-
     def one_ulp_off(rng, total, *rest):
-        rows, t, nxt = python_worn(rng, total, *rest)
+        rows, t, nxt = compiled.worn(rng, total, *rest)
         rows[len(rows) // 2, 0] = np.nextafter(rows[len(rows) // 2, 0], np.inf)
         return rows, t, nxt
 
     def one_draw_more(rng, total, *rest):
-        out = python_worn(rng, total, *rest)
+        out = compiled.worn(rng, total, *rest)
         rng.random()
         return out
 
-    def kernels(worn):
-        return lambda: types.SimpleNamespace(
-            worn=worn, start_states=lambda eh, et, ratio, base, ht, on, t0: _states_from_terms(eh, et, ratio, base,
-                                                                                             ht, on, t0))
+    def pieces_of_an_hour(rng, total, par, *rest):
+        par = par.copy()
+        par[_plan_jit.P_MAX_STILL_PIECE_S] = 3600.0  # only the sitting wearer's stills reach it
+        return compiled.worn(rng, total, par, *rest)
 
-    assert plan_numba._same_plan(kernels(python_worn)())  # the check passes the Python code itself
+    def kernels(worn):
+        return lambda: types.SimpleNamespace(worn=worn, start_states=compiled.start_states)
+
+    assert plan_numba._same_plan(kernels(compiled.worn)())
     try:
         for load, warns in ((no_numba, False), (fails_to_compile, True), (kernels(one_ulp_off), True),
-                            (kernels(one_draw_more), True)):
+                            (kernels(one_draw_more), True), (kernels(pieces_of_an_hour), True)):
             monkeypatch.setattr(plan_numba, "_load", load)
-            plan_numba._checked.cache_clear()
+            plan_numba.reset()
             if warns:
                 with pytest.warns(RuntimeWarning, match="planning in Python"):
                     assert plan_numba.kernels() is None
             else:
                 assert plan_numba.kernels() is None
             rng = np.random.default_rng(9)
-            got = wearer.make_schedule(cfg, rng, 1.5)
+            got = wearer.make_schedule(cfg, rng, 12.0)
             assert rng.bit_generator.state == want_state
             for f in dataclasses.fields(want):
                 a, b = getattr(got, f.name), getattr(want, f.name)
-                assert np.array_equal(a, b, equal_nan=True) if isinstance(b, np.ndarray) else a == b, f.name
+                assert same_bits(a, b) if isinstance(b, np.ndarray) else a == b, f.name
     finally:
         monkeypatch.undo()
-        plan_numba._checked.cache_clear()
-
-
-def _python_as_kernel(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, load, last, next_still):
-    """``_Builder.worn_python`` with the kernel's inputs and outputs (its state from them)."""
-    b = wearer._Builder(SimConfig(), np.random.default_rng(0))  # (its own draw of the shoe's pitch)
-    b.rng = rng
-    b.t, b.orient, b.load, b.next_still = t, (float(orient[0]), float(orient[1])), tuple(load), int(next_still)
-    if last[0] >= 0:
-        b.rows.append((0.0, 0, int(last[0]), last[1], last[2], last[1], last[2]) + (0.0,) * 9 + (last[3],))
-    n0 = len(b.rows)
-    b._kernel_inputs = None
-    b.shoe_pitch = par[37]
-    b.worn_python(total)
-    orient[:] = b.orient
-    load[:] = b.load
-    return np.array(b.rows[n0:], dtype=float).reshape(-1, len(wearer._COLUMNS)), b.t, b.next_still
-
-
-def _states_from_terms(eh, et, ratio, base, ht, on, t0):
-    """``start_states``' recurrence in Python, from the kernel's inputs."""
-    m = len(eh)
-    temp0, heat0 = np.empty(m), np.empty(m)
-    t, h = t0, 0.0
-    for i in range(m):
-        temp0[i], heat0[i] = t, h
-        b = (h - ht[i]) * ratio[i] if on[i] else 0.0
-        c = t - base[i] - b
-        t = base[i] + b * eh[i] + c * et[i]
-        h = ht[i] + (h - ht[i]) * eh[i]
-    return temp0, heat0
+        plan_numba.reset()

@@ -36,9 +36,9 @@ P_SIT_HEEL_PITCH_DEG, P_SIT_TOES_PITCH_DEG, P_SIT_CROSSED_ROLL_DEG = 44, 46, 48 
 P_SIT_CROSSED_SWAY_G, P_SIT_FIDGET_SD_G = 50, 51
 P_STAIRS_CYCLE_S, P_STAIRS_STRIDE_M, P_CYCLE_S, P_CYCLE_SD_S = 52, 53, 54, 55
 P_STRIDE_M, P_STRIDE_SD_M, P_SLOPE_SD_DEG = 56, 57, 58
-N_PAR = 59
-MAX_STILL_PIECE_S = 1800.0
-N_COLUMNS = 17
+P_MAX_STILL_PIECE_S = 59  # wearer.MAX_STILL_PIECE_S: a longer still is cut into pieces
+N_PAR = 60
+N_COLUMNS = 17  # len(wearer._COLUMNS); checked when the kernels are loaded
 
 
 @numba.njit(cache=True)
@@ -92,12 +92,11 @@ def _grow(rows, n):
 
 
 @numba.njit(cache=True)
-def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, load, last, next_still):
+def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, load, next_still):
     """The semi-Markov chain of sit / stand / walk / stairs for ``total`` s, as
     ``_Builder.worn`` plans it.
 
-    ``t`` (s), ``orient`` (2,) rad and ``load`` (4,) are the builder's state, ``last`` the
-    (motion, pitch0, roll0, still_id) of its last row (motion -1: none) and
+    ``t`` (s), ``orient`` (2,) rad and ``load`` (4,) are the builder's state and
     ``next_still`` its next still id; ``sit_cdf`` is the sitting postures' cumulative
     distribution, ``next_code[s, :next_len[s]]`` / ``next_cdf[s]`` the states that follow
     state ``s`` and their cumulative distribution. Returns ``(rows (n, 17), t, next_still)``;
@@ -108,7 +107,6 @@ def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, loa
     end = t + total
     state = 1  # stand
     climb = 1.0
-    last_motion, last_p, last_r, last_sid = last[0], last[1], last[2], last[3]
     while t < end - 1e-9:
         left = end - t
         if state == 0 or state == 1:  # sit, stand: alternating movements and quiet
@@ -188,19 +186,17 @@ def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, loa
                         r[7], r[8], r[9], r[10], r[11] = sd, 0.0, 0.0, 0.0, 0.0
                         r[12], r[13], r[14], r[15], r[16] = load[0], load[1], load[2], load[3], -1.0
                         n += 1
-                        last_motion, last_p, last_r, last_sid = 1.0, orient[0], orient[1], -1.0
                         t += d
                         orient[0], orient[1] = new_p, new_r
                     else:
-                        # still: continues the previous still period if it is one in this orientation
-                        if last_motion == 0.0 and last_p == new_p and last_r == new_r:
-                            sid = last_sid
-                        else:
-                            sid = float(next_still)
-                            next_still += 1
+                        # still: a new still period (``_Builder.still`` continues the last
+                        # row's period when it is a still in the same orientation; here the
+                        # last row is always the move into this posture)
+                        sid = float(next_still)
+                        next_still += 1
                         rest = d
                         while rest > 0:
-                            piece = min(rest, MAX_STILL_PIECE_S)
+                            piece = min(rest, par[P_MAX_STILL_PIECE_S])
                             rows = _grow(rows, n)
                             r = rows[n]
                             r[0], r[1], r[2] = piece, act, 0.0
@@ -208,7 +204,6 @@ def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, loa
                             r[7], r[8], r[9], r[10], r[11] = sway, 0.0, 0.0, 0.0, 0.0
                             r[12], r[13], r[14], r[15], r[16] = new_load[0], new_load[1], new_load[2], new_load[3], sid
                             n += 1
-                            last_motion, last_p, last_r, last_sid = 0.0, new_p, new_r, sid
                             rest -= piece
                         t += d
                         orient[0], orient[1] = new_p, new_r
@@ -245,7 +240,6 @@ def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, loa
             r[7], r[8], r[9], r[10], r[11] = 0.0, cycle, stride, slope, c_climb
             r[12], r[13], r[14], r[15], r[16] = np.nan, 0.0, 0.0, 0.0, -1.0
             n += 1
-            last_motion, last_p, last_r, last_sid = 2.0, flat, 0.0, -1.0
             t += d
             orient[0], orient[1] = flat, 0.0
             for i in range(4):

@@ -7,6 +7,7 @@ part of the simulator; ``SimConfig.from_section(cfg["sim"])`` validates a TOML s
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -28,13 +29,27 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+def _range(v: tuple[float, float], limit: float, unit: str) -> tuple[float, float]:
+    """A ``(lo, hi)`` range drawn from uniformly: ``-limit <= lo <= hi <= limit``."""
+    lo, hi = v
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError(f"a range needs finite ends, got ({lo}, {hi})")
+    if lo > hi:
+        raise ValueError(f"a range needs lo <= hi, got ({lo}, {hi})")
+    if max(abs(lo), abs(hi)) > limit:
+        raise ValueError(f"a range within +-{limit:g} {unit}, got ({lo}, {hi})")
+    return v
+
+
 class LogNormalDuration(_Strict):
     """A clipped log-normal duration: median, geometric sd and clip range (s)."""
 
     median_s: float = Field(gt=0)
-    gsd: float = Field(ge=1.0, description="geometric standard deviation (>= 1)")
-    min_s: float = Field(gt=0)
-    max_s: float = Field(gt=0)
+    gsd: float = Field(ge=1.0, allow_inf_nan=False, description="geometric standard deviation (>= 1)")
+    # at least a millisecond (a sample at 1 kHz): the planner alternates still and moving
+    # periods, and sizes its draws by how many fit in a bout
+    min_s: float = Field(ge=1e-3)
+    max_s: float = Field(gt=0, allow_inf_nan=False)
 
     @model_validator(mode="after")
     def _check(self) -> "LogNormalDuration":
@@ -109,6 +124,12 @@ class PostureConfig(_Strict):
     sit_crossed_p: float = Field(0.08, ge=0, description="legs crossed: foot hanging, rolled")
     sit_crossed_roll_deg: tuple[float, float] = (15.0, 45.0)
     sit_sway_sd_mg: float = Field(2.0, ge=0)
+
+    @field_validator("sit_heel_pitch_deg", "sit_toes_pitch_deg", "sit_crossed_roll_deg")
+    @classmethod
+    def _ranges(cls, v: tuple[float, float]) -> tuple[float, float]:
+        return _range(v, 360.0, "deg")
+
     sit_crossed_sway_sd_mg: float = Field(25.0, ge=0, description="a hanging foot swings")
     # shoe off the foot
     off_flat_p: float = Field(0.85, ge=0)
@@ -156,6 +177,11 @@ class TemperatureConfig(_Strict):
     tau_walk_s: float = Field(600.0, gt=0, description="time constant of the walking heat")
     noise_sd_c: float = Field(0.05, ge=0, description="measurement noise of the reported temperature")
     lsb_c: float = Field(0.01, ge=0, description="resolution of the reported temperature (0: none)")
+
+    @field_validator("ambient_c", "foot_c", "walk_heat_c")
+    @classmethod
+    def _ranges(cls, v: tuple[float, float]) -> tuple[float, float]:
+        return _range(v, 1000.0, "degC")
 
 
 class PressureConfig(_Strict):

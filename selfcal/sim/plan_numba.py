@@ -6,8 +6,8 @@ are scalar Python loops, most of a poses-level replay's simulator. Their kernels
 same operations in the same order and take the same draws from the same generator, so a
 schedule is the same bit for bit, and so is every result drawn from it. At first use
 they are compiled (or loaded from numba's cache) and run against the Python code on a
-few simulated days; if anything differs, or numba fails, the Python code plans, with
-one warning.
+few simulated days of three wearers; if anything differs, or numba fails, the Python
+code plans, with one warning.
 
 numba is optional (``pip install 'selfcal[fast]'``); ``SELFCAL_NUMBA=0`` switches these
 kernels off as it does the detector's (:mod:`selfcal.detect_numba`).
@@ -15,16 +15,29 @@ kernels off as it does the detector's (:mod:`selfcal.detect_numba`).
 
 from __future__ import annotations
 
-import functools
 import threading
 import warnings
 from types import SimpleNamespace
 
-
 #: A plan shorter than this (days) is made in Python unless the kernels are loaded
 #: already: their first load in a process (0.3-0.7 s from numba's cache, longer to
-#: compile) costs about what the Python planner takes for ~10 days (30-50 ms a day).
+#: compile) costs about what the Python planner takes for ~10 days (30-65 ms a day).
 LOAD_FOR_DAYS = 10.0
+
+#: The wearers of the first-use check (``[sim]`` sections): the default one; one whose
+#: chain can go from any state to any other, with every sitting posture common; and one
+#: that sits for hours (still periods cut into pieces).
+CHECK_SECTIONS = {
+    "default": {},
+    "busy": {"activity": {"from_sit": {"stand": 0.5, "walk": 0.3, "stairs": 0.2},
+                          "from_stairs": {"walk": 0.4, "stand": 0.3, "sit": 0.1, "stairs": 0.2},
+                          "walk_long_fraction": 0.5},
+             "posture": {"sit_flat_p": 0.1, "sit_heel_p": 0.3, "sit_toes_p": 0.3, "sit_crossed_p": 0.3,
+                         "stand_tilt_sd_deg": 0.0, "sit_sway_sd_mg": 0.0}},
+    "sitting": {"activity": {"from_stand": {"sit": 1.0},
+                             "sit": {"median_s": 7200, "gsd": 1.5, "min_s": 60, "max_s": 10800}},
+                "posture": {"sit_quiet": {"median_s": 2400, "gsd": 2.0, "min_s": 1, "max_s": 7200}}},
+}
 
 
 def kernels(days: float | None = None) -> SimpleNamespace | None:
@@ -38,38 +51,58 @@ def kernels(days: float | None = None) -> SimpleNamespace | None:
 
     if not enabled():
         return None
-    if days is not None and days < LOAD_FOR_DAYS and _checked.cache_info().currsize == 0:
+    if days is not None and days < LOAD_FOR_DAYS and not loaded():
         return None
     return _checked()
 
 
 _lock = threading.Lock()
+_found: list = []  # [kernels or None] once loaded and checked
 
 
-@functools.lru_cache(maxsize=1)
-def _checked() -> SimpleNamespace | None:
+def loaded() -> bool:
+    """Whether the kernels were loaded and checked (or found unusable) in this process."""
+    return bool(_found)
+
+
+def reset() -> None:
+    """Forget the loaded kernels (tests)."""
     with _lock:
-        try:
-            found = _load()
-        except ImportError:
-            return None
-        except Exception as exc:  # noqa: BLE001 - an accelerator must never stop the simulator
-            warnings.warn(f"selfcal: the simulator planner's numba kernels are not used ({exc!r}); "
-                          "planning in Python", RuntimeWarning, stacklevel=2)
-            return None
-        if found is None:
-            return None
-        try:
-            ok = _same_plan(found)
-        except Exception as exc:  # noqa: BLE001 - an accelerator must never stop the simulator
-            warnings.warn(f"selfcal: the simulator planner's numba kernels are not used ({exc!r}); "
-                          "planning in Python", RuntimeWarning, stacklevel=2)
-            return None
-        if not ok:
-            warnings.warn("selfcal: the simulator planner's numba kernels differ from its Python code "
-                          "on this machine; planning in Python", RuntimeWarning, stacklevel=2)
-            return None
-        return found
+        _found.clear()
+
+
+def _checked() -> SimpleNamespace | None:
+    """The kernels, loaded and checked once per process (a thread that waited for another's
+    check takes its result)."""
+    if not _found:
+        with _lock:
+            if not _found:
+                _found.append(_load_and_check())
+    return _found[0]
+
+
+def _load_and_check() -> SimpleNamespace | None:
+    try:
+        found = _load()
+    except ImportError:
+        return None
+    except Exception as exc:  # noqa: BLE001 - an accelerator must never stop the simulator
+        warnings.warn(f"selfcal: the simulator planner's numba kernels are not used ({exc!r}); "
+                      "planning in Python", RuntimeWarning, stacklevel=3)
+        return None
+    if found is None:
+        return None
+    try:
+        ok = _same_plan(found)
+    except Exception as exc:  # noqa: BLE001 - an accelerator must never stop the simulator
+        warnings.warn(f"selfcal: the simulator planner's numba kernels are not used ({exc!r}); "
+                      "planning in Python", RuntimeWarning, stacklevel=3)
+        return None
+    if not ok:
+        warnings.warn("selfcal: the simulator planner's numba kernels differ from its Python code "
+                      "on this machine; planning in Python", RuntimeWarning, stacklevel=3)
+        return None
+    return found
 
 
 def _load() -> SimpleNamespace | None:
@@ -80,23 +113,33 @@ def _load() -> SimpleNamespace | None:
 
     if numba.config.DISABLE_JIT:
         return None
-    from selfcal.sim import _plan_jit
+    from selfcal.sim import _plan_jit, wearer
 
+    if _plan_jit.N_COLUMNS != len(wearer._COLUMNS):
+        raise RuntimeError(f"the kernel writes {_plan_jit.N_COLUMNS} columns, the schedule has "
+                           f"{len(wearer._COLUMNS)}")
     return SimpleNamespace(worn=_plan_jit.worn, start_states=_plan_jit.start_states)
 
 
+def _same_bits(a, b) -> bool:
+    import numpy as np
+
+    return (a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
+            and np.array_equal(np.signbit(a), np.signbit(b)))
+
+
 def _same_plan(k: SimpleNamespace) -> bool:
-    """Whether the kernels plan what the Python code does, row for row and bit for bit
-    (the generator left in the same state), over 2 days of two wearers of the default
-    configuration, with still rows between the days (a kernel's block then continues)."""
+    """Whether the kernels plan what the Python code does, row for row and bit for bit (the
+    signs of zeros, and the generator left in the same state), for the wearers of
+    :data:`CHECK_SECTIONS` over two days each, with still rows between the days."""
     import numpy as np
 
     from selfcal.sim import temperature
     from selfcal.sim.config import SimConfig
     from selfcal.sim.wearer import OFF, _Builder
 
-    cfg = SimConfig()
-    for seed in (0, 1):
+    for seed, section in enumerate(CHECK_SECTIONS.values()):
+        cfg = SimConfig.from_section(section)
         python, compiled = (_Builder(cfg, np.random.default_rng(seed)) for _ in range(2))
         for day in range(2):
             for b in (python, compiled):
@@ -104,7 +147,7 @@ def _same_plan(k: SimpleNamespace) -> bool:
             python.worn_python(14 * 3600.0)
             compiled.worn_compiled(k.worn, 14 * 3600.0)
         table = python.table()
-        if not (np.array_equal(table, compiled.table(), equal_nan=True) and python.t == compiled.t
+        if not (_same_bits(table, compiled.table()) and python.t == compiled.t
                 and python.orient == compiled.orient and python.load == compiled.load
                 and python.next_still == compiled.next_still
                 and python.rng.bit_generator.state == compiled.rng.bit_generator.state):
@@ -113,7 +156,7 @@ def _same_plan(k: SimpleNamespace) -> bool:
         m = len(table)
         args = (rng.uniform(10, 5000, m), rng.uniform(15, 35, m), np.where(rng.random(m) < 0.3, 4.0, 0.0),
                 rng.uniform(300, 3000, m), np.full(m, 120.0), rng.random(m) < 0.6, 21.5)
-        if not all(np.array_equal(x, y) for x, y in zip(temperature.start_states_python(*args),
-                                                        temperature.segment_start_states(*args, kernel=k))):
+        if not all(_same_bits(x, y) for x, y in zip(temperature.start_states_python(*args),
+                                                    temperature.segment_start_states(*args, kernel=k))):
             return False
     return True

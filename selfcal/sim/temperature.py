@@ -88,8 +88,8 @@ def segment_start_states(
         Temperature at time 0.
     kernel : optional
         The planner's numba kernels (:func:`selfcal.sim.plan_numba.kernels`), None for the
-        Python recurrence, or ``"auto"`` (default): the kernels when they are there. The
-        same results either way.
+        Python recurrence, or ``"auto"`` (default): the kernels if they are loaded already
+        (this alone does not pay their first load). The same results either way.
 
     Returns
     -------
@@ -98,7 +98,7 @@ def segment_start_states(
     if isinstance(kernel, str) and kernel == "auto":
         from selfcal.sim import plan_numba
 
-        kernel = plan_numba.kernels()
+        kernel = plan_numba.kernels(days=0.0)
     if kernel is None:
         return start_states_python(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot, temp_init_c)
     eh, et, ratio, base = _recurrence_terms(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot)

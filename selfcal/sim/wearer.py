@@ -374,6 +374,7 @@ class _Builder:
                 g.stairs_cycle_s, g.stairs_stride_length_m, g.cycle_s, g.cycle_sd_s)
             par[[J.P_STRIDE_M, J.P_STRIDE_SD_M, J.P_SLOPE_SD_DEG]] = (
                 g.stride_length_m, g.stride_length_sd_m, g.slope_sd_deg)
+            par[J.P_MAX_STILL_PIECE_S] = MAX_STILL_PIECE_S
             states = ("sit", "stand", "walk", "stairs")  # the kernel's state codes 0..3
             next_code = np.zeros((4, 4), dtype=np.int64)
             next_cdf = np.ones((4, 4))
@@ -388,12 +389,10 @@ class _Builder:
 
     def worn_compiled(self, kernel, total: float) -> None:
         """:meth:`worn` by the numba kernel (:mod:`selfcal.sim._plan_jit`)."""
-        last = self.last_row()
-        last4 = np.array([-1.0, 0.0, 0.0, -1.0] if last is None else [last[2], last[3], last[4], last[-1]])
         orient = np.array(self.orient, dtype=float)
         load = np.array(self.load, dtype=float)
         rows, t, next_still = kernel(self.rng, float(total), *self.kernel_inputs(), float(self.t), orient, load,
-                                     last4, int(self.next_still))
+                                     int(self.next_still))
         if len(rows):
             self.add_block(rows)
         self.t, self.next_still = t, int(next_still)
