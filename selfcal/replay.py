@@ -389,7 +389,11 @@ def step_summary(results: list[dict]) -> dict:
 
 
 def _replay_one(kwargs: dict) -> dict:
-    return replay(**kwargs)
+    """One device's replay, as every engine runs it: with one BLAS thread (restored after)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        return replay(**kwargs)
 
 
 #: The environment of a process that runs one replay at a time beside others: one thread
@@ -397,20 +401,14 @@ def _replay_one(kwargs: dict) -> dict:
 BLAS_ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
-def one_blas_thread() -> None:
-    """Limit the BLAS libraries loaded in this process to one thread each.
-
-    A replay's linear algebra is on small matrices (a few thousand rows by ~12), where
-    OpenBLAS's extra threads bring nothing and busy-wait between calls: with one replay
-    process per core they took the cores the other replays needed (4 devices x 10 days on
-    2 processes, 2 cores: 6.7-7.3 device-days/s with OpenBLAS's default of a thread per
-    core, 9.7-10.7 with one; the same results). Process pools fork after numpy has loaded
-    OpenBLAS, so the environment variables come too late there; threadpoolctl sets the
-    loaded libraries' thread counts.
-    """
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(limits=1)
+# Why one BLAS thread: a replay's linear algebra is on small matrices (a few thousand rows
+# by ~12), where OpenBLAS's extra threads bring nothing and busy-wait between calls; with
+# one replay process per core they took the cores the other replays needed (4 devices x 10
+# days on 2 processes, 2 cores: 6.7-7.3 device-days/s with OpenBLAS's default of a thread
+# per core, 9.7-10.7 with one; the same results). A process pool forks after numpy has
+# loaded OpenBLAS, and a Ray or remote Dask worker is already running, so environment
+# variables come too late there: threadpoolctl sets the loaded libraries' thread counts
+# around each device's replay (_replay_one).
 
 
 ENGINES = ("processes", "dask", "ray")
@@ -448,15 +446,17 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
     elif engine == "ray":
         _run_ray(jobs, scheduler, done)
     elif workers <= 1:
-        from threadpoolctl import threadpool_limits
-
-        with threadpool_limits(limits=1):  # this process's BLAS as it was, afterwards
-            for i, job in enumerate(jobs):
-                done(i, _replay_one(job))
+        for i, job in enumerate(jobs):
+            done(i, _replay_one(job))
     else:
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(max_workers=workers, initializer=one_blas_thread) as pool:
+        from selfcal.sim import plan_numba
+
+        # loaded once here, the simulator planner's kernels come to every forked process
+        # (otherwise each loads and checks them, or compiles them into an empty cache)
+        plan_numba.kernels(float(kwargs.get("days", 30.0)) * devices / workers)
+        with ProcessPoolExecutor(max_workers=workers) as pool:
             futs = {pool.submit(_replay_one, job): i for i, job in enumerate(jobs)}
             for fut in as_completed(futs):
                 done(futs[fut], fut.result())
@@ -481,7 +481,7 @@ def _run_dask(jobs: list[dict], workers: int, scheduler: str | None, done) -> No
         # Dask's nannies set MALLOC_TRIM_THRESHOLD_=65536 in their workers by default; glibc
         # then returns freed memory at once, and the replay's many numpy temporaries cost
         # mmap/munmap each: 1.5x slower per device, measured. Workers keep glibc's own policy,
-        # and one BLAS thread each (one_blas_thread), as Dask's default environment gives them
+        # and one BLAS thread each (_replay_one), as Dask's default environment gives them
         with dask.config.set({"distributed.nanny.pre-spawn-environ": dict(BLAS_ONE_THREAD)}):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=40)
