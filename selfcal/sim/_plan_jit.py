@@ -25,6 +25,8 @@ import math
 import numba
 import numpy as np
 
+from selfcal.sim.temperature import recurrence
+
 # slots of ``par``: a log-normal duration is (median_s, log(gsd), min_s, max_s)
 P_SIT, P_STAND, P_WALK_SHORT, P_WALK_LONG, P_STAIRS = 0, 4, 8, 12, 16
 P_STAND_QUIET, P_STAND_SHIFT, P_SIT_QUIET, P_SIT_FIDGET = 20, 24, 28, 32
@@ -248,20 +250,7 @@ def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, loa
     return rows[:n].copy(), t, next_still
 
 
-@numba.njit(cache=True)
-def start_states(eh, et, ratio, base, heat_target, on_foot, temp_init):
-    """``temperature.segment_start_states``' recurrence, the same operations in order:
-    the temperature and walking heat (degC) at the start of every segment, (m,) each."""
-    m = eh.size
-    temp0 = np.empty(m)
-    heat0 = np.empty(m)
-    t, h = temp_init, 0.0
-    for i in range(m):
-        temp0[i] = t
-        heat0[i] = h
-        hs = heat_target[i]
-        b = (h - hs) * ratio[i] if on_foot[i] else 0.0
-        c = t - base[i] - b
-        t = base[i] + b * eh[i] + c * et[i]
-        h = hs + (h - hs) * eh[i]
-    return temp0, heat0
+#: ``temperature.segment_start_states``' recurrence (:func:`selfcal.sim.temperature.recurrence`,
+#: the same function, compiled): the temperature and walking heat (degC) at the start of
+#: every segment, (m,) each.
+start_states = numba.njit(cache=True)(recurrence)

@@ -82,21 +82,17 @@ def _checked() -> SimpleNamespace | None:
 
 
 def _load_and_check() -> SimpleNamespace | None:
+    """The kernels if numba loads them (or compiles them) and they pass the check, else None."""
     try:
         found = _load()
-    except ImportError:
+        ok = found is not None and _same_plan(found)
+    except ImportError:  # no numba
         return None
-    except Exception as exc:  # noqa: BLE001 - an accelerator must never stop the simulator
+    except Exception as exc:  # noqa: BLE001 - a compiler error, no cache location: never stop the simulator
         warnings.warn(f"selfcal: the simulator planner's numba kernels are not used ({exc!r}); "
                       "planning in Python", RuntimeWarning, stacklevel=3)
         return None
     if found is None:
-        return None
-    try:
-        ok = _same_plan(found)
-    except Exception as exc:  # noqa: BLE001 - an accelerator must never stop the simulator
-        warnings.warn(f"selfcal: the simulator planner's numba kernels are not used ({exc!r}); "
-                      "planning in Python", RuntimeWarning, stacklevel=3)
         return None
     if not ok:
         warnings.warn("selfcal: the simulator planner's numba kernels differ from its Python code "

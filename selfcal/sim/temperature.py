@@ -117,20 +117,27 @@ def _recurrence_terms(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot)
 def start_states_python(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot,
                         temp_init_c: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`segment_start_states` in Python (the reference of its numba kernel)."""
-    m = len(dur_s)
     eh, et, ratio, base = _recurrence_terms(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot)
+    # the scalar recurrence on Python floats (lists: far faster to index than arrays)
+    return recurrence(eh.tolist(), et.tolist(), ratio.tolist(), base.tolist(), heat_target_c.tolist(),
+                      on_foot.tolist(), float(temp_init_c))
+
+
+def recurrence(eh, et, ratio, base, heat_target, on_foot, temp_init: float) -> tuple[np.ndarray, np.ndarray]:
+    """The temperature and walking heat (degC) at the start of every segment, (m,) each,
+    one closed-form step per segment from ``temp_init`` (degC): sequences of the per-segment
+    decays ``eh``, ``et``, heat ratio, plateau ``base`` (degC), walking heat target (degC)
+    and on-foot flags. Plain Python, also compiled as it is by :mod:`selfcal.sim._plan_jit`."""
+    m = len(eh)
     temp0 = np.empty(m)
     heat0 = np.empty(m)
-    t, h = float(temp_init_c), 0.0
-    # scalar recurrence: one step per segment (closed form), O(m) Python floats
-    eh_l, et_l, r_l, b_l = eh.tolist(), et.tolist(), ratio.tolist(), base.tolist()
-    ht_l, on_l = heat_target_c.tolist(), on_foot.tolist()
+    t, h = temp_init, 0.0
     for i in range(m):
         temp0[i] = t
         heat0[i] = h
-        hs = ht_l[i]
-        b = (h - hs) * r_l[i] if on_l[i] else 0.0
-        c = t - b_l[i] - b
-        t = b_l[i] + b * eh_l[i] + c * et_l[i]
-        h = hs + (h - hs) * eh_l[i]
+        hs = heat_target[i]
+        b = (h - hs) * ratio[i] if on_foot[i] else 0.0
+        c = t - base[i] - b
+        t = base[i] + b * eh[i] + c * et[i]
+        h = hs + (h - hs) * eh[i]
     return temp0, heat0
