@@ -453,9 +453,14 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
 
         from selfcal.sim import plan_numba
 
-        # loaded once here, the simulator planner's kernels come to every forked process
-        # (otherwise each loads and checks them, or compiles them into an empty cache)
+        # loaded once here, the simulator planner's kernels (and at the samples level the
+        # detector's) come to every forked process; otherwise each loads and checks them,
+        # or all compile them into an empty numba cache at once
         plan_numba.kernels(float(kwargs.get("days", 30.0)) * devices / workers)
+        if kwargs.get("level") == "samples":
+            from selfcal.detect_numba import kernels_now
+
+            kernels_now()
         with ProcessPoolExecutor(max_workers=workers) as pool:
             futs = {pool.submit(_replay_one, job): i for i, job in enumerate(jobs)}
             for fut in as_completed(futs):
