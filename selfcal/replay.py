@@ -389,26 +389,20 @@ def step_summary(results: list[dict]) -> dict:
 
 
 def _replay_one(kwargs: dict) -> dict:
-    """One device's replay, as every engine runs it: with one BLAS thread (restored after)."""
+    """One device's replay, as every engine runs it: with one BLAS thread (restored after).
+
+    A replay's linear algebra is on small matrices (a few thousand rows by ~12), where
+    OpenBLAS's extra threads bring nothing and busy-wait between calls; with one replay
+    process per core they took the cores the other replays needed (4 devices x 10 days on
+    2 processes, 2 cores: 6.7-7.3 device-days/s with OpenBLAS's default of a thread per
+    core, 9.7-10.7 with one; the same results). A process pool forks after numpy has
+    loaded OpenBLAS, and a Ray or Dask worker is already running, so environment
+    variables would come too late: threadpoolctl sets the loaded libraries' thread counts.
+    """
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1):
         return replay(**kwargs)
-
-
-#: The environment of a process that runs one replay at a time beside others: one thread
-#: for each BLAS / OpenMP library (their variables are read when the library loads).
-BLAS_ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-# Why one BLAS thread: a replay's linear algebra is on small matrices (a few thousand rows
-# by ~12), where OpenBLAS's extra threads bring nothing and busy-wait between calls; with
-# one replay process per core they took the cores the other replays needed (4 devices x 10
-# days on 2 processes, 2 cores: 6.7-7.3 device-days/s with OpenBLAS's default of a thread
-# per core, 9.7-10.7 with one; the same results). A process pool forks after numpy has
-# loaded OpenBLAS, and a Ray or remote Dask worker is already running, so environment
-# variables come too late there: threadpoolctl sets the loaded libraries' thread counts
-# around each device's replay (_replay_one).
 
 
 ENGINES = ("processes", "dask", "ray")
@@ -485,9 +479,9 @@ def _run_dask(jobs: list[dict], workers: int, scheduler: str | None, done) -> No
 
         # Dask's nannies set MALLOC_TRIM_THRESHOLD_=65536 in their workers by default; glibc
         # then returns freed memory at once, and the replay's many numpy temporaries cost
-        # mmap/munmap each: 1.5x slower per device, measured. Workers keep glibc's own policy,
-        # and one BLAS thread each (_replay_one), as Dask's default environment gives them
-        with dask.config.set({"distributed.nanny.pre-spawn-environ": dict(BLAS_ONE_THREAD)}):
+        # mmap/munmap each: 1.5x slower per device, measured. Workers keep glibc's own policy
+        # (and their BLAS runs one thread during a replay: _replay_one)
+        with dask.config.set({"distributed.nanny.pre-spawn-environ": {}}):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                    dashboard_address=None, silence_logs=40)
         client = Client(cluster)

@@ -95,7 +95,7 @@ def segment_start_states(
     -------
     temp0_c, heat0_c : ndarray, shape (m,), degC
     """
-    if isinstance(kernel, str) and kernel == "auto":
+    if kernel == "auto":
         from selfcal.sim import plan_numba
 
         kernel = plan_numba.kernels(days=0.0)

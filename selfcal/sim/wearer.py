@@ -161,6 +161,7 @@ class _Builder:
         self.rows: list[tuple] = []  # the latest rows, after those in ``blocks``
         self.blocks: list[np.ndarray] = []  # earlier rows, (k, len(_COLUMNS)) each
         self.kernels = None  # the planner's numba kernels (plan_numba.kernels), or None: Python
+        self._kernel_inputs: tuple | None = None  # their constants, built at first use
         self.t = 0.0
         self.orient = (0.0, 0.0)
         self.load = (0.0, 0.0, 0.0, 0.0)
@@ -347,7 +348,7 @@ class _Builder:
 
     def kernel_inputs(self) -> tuple:
         """The planner's constants as the kernel takes them (built once per builder)."""
-        if getattr(self, "_kernel_inputs", None) is None:
+        if self._kernel_inputs is None:
             from selfcal.sim import _plan_jit as J
 
             a, p, g = self.cfg.activity, self.cfg.posture, self.cfg.gait
@@ -519,4 +520,3 @@ def _finish(b: _Builder, config: SimConfig, rate: float, total_s: float, day_dra
         heat_target_c=heat_t, tau_t_s=tau_t, tau_h_s=tau_h, on_foot=on_foot, days=day_draws,
         stand_kpa=stand_kpa,
     )
-
