@@ -382,19 +382,26 @@ class OnlineCalibrator:
         if n_cells < self.guard_cfg.min_poses:
             reason = "insufficient_coverage" if len(self.store) else "no_still_poses"
             return self._refuse(t_now, reason, f"{n_cells} pose cell(s); at least {self.guard_cfg.min_poses} are needed")
+        checked: dict = {}
         if self._selection_due(t_now, n_cells):
-            switched = self._select(t_now)
+            switched = self._select(t_now, checked)
             if switched is not None:
                 return switched
             usable = self._usable()
             n_cells = int(usable.sum())
-        data = self._pose_data(usable, t_now)
         prior = self.prior()
-        theta0 = self.initial_params_u if self.current is None else np.asarray(self.current["theta_u"])
-        try:
-            fit, data, cfg, c_noise = self._fit_store(data, usable, prior, theta0)
-        except InputError as exc:
-            return self._refuse(t_now, "insufficient_coverage", str(exc))
+        done = checked.get(self.model.uses_temperature)
+        if done is not None and np.array_equal(done[0], usable):
+            # the check fitted this model to these cells from this start (the published
+            # value) with this state: the same fit, not done twice
+            _, data, cfg, _, fit, c_noise = done
+        else:
+            data = self._pose_data(usable, t_now)
+            theta0 = self.initial_params_u if self.current is None else np.asarray(self.current["theta_u"])
+            try:
+                fit, data, cfg, c_noise = self._fit_store(data, usable, prior, theta0)
+            except InputError as exc:
+                return self._refuse(t_now, "insufficient_coverage", str(exc))
         fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}
         self._fit_cfg_now = cfg
         decision = self._guard(fit, data, usable, prior)
@@ -533,11 +540,15 @@ class OnlineCalibrator:
             t_ref = float(self.store.t_first.min())
         return ErrorModel("+".join((self.model.base,) + names), self.model.temp_ref_c, t_ref)
 
-    def _select(self, t_now: float) -> dict | None:
+    def _select(self, t_now: float, prepared: dict | None = None) -> dict | None:
         """One check of the model (see :mod:`selfcal.selection`); the switch event, or None.
 
         Depends only on the pose store and the published model (not on what an earlier
-        refit left in memory), so a calibrator restored from its state decides the same."""
+        refit left in memory), so a calibrator restored from its state decides the same.
+        ``prepared`` (filled when given): the current model's fits the check made, by
+        whether the cells need a temperature, ``(mask, data, fit config, cross-validation
+        cache, fit, cell noise factor)`` as :meth:`_fit_store` gives them; when the check
+        changes nothing, the refit that follows is the one of the same mask."""
         c = self.sel_cfg
         self.selection["last_check_t_s"] = t_now
         self.selection["n_checks"] = int(self.selection.get("n_checks", 0)) + 1
@@ -547,7 +558,7 @@ class OnlineCalibrator:
         clusters_all = self.store.clusters()
         clip = c.clip_mg * 1e-3
         results: list[tuple[str, Comparison]] = []
-        prepared: dict[bool, tuple] = {}
+        prepared = {} if prepared is None else prepared
 
         def cells(with_temp: bool) -> tuple:
             """(mask, data with the noise the current model's fit shows, fit config, small-model CV cache,
@@ -555,9 +566,9 @@ class OnlineCalibrator:
             if with_temp not in prepared:
                 mask = np.isfinite(temps) if with_temp else np.ones(len(self.store), dtype=bool)
                 data = self._pose_data(mask, t_now)
-                fit, data, cfg, _ = self._fit_store(data, mask, self.prior(), theta)
-                prepared[with_temp] = (mask, data, cfg, {}, fit)
-            return prepared[with_temp]
+                fit, data, cfg, c_noise = self._fit_store(data, mask, self.prior(), theta)
+                prepared[with_temp] = (mask, data, cfg, {}, fit, c_noise)
+            return prepared[with_temp][:5]
 
         try:
             self._reestimate_step(t_now)
