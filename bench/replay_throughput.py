@@ -16,6 +16,11 @@ still windows alone. A stage slower than the goal bounds the whole replay below 
 
     python bench/replay_throughput.py                        # 4 devices x 10 days, both levels
     python bench/replay_throughput.py --days 365 --devices 8 --levels poses --engines processes:2
+    python bench/replay_throughput.py --days 45 --levels poses --engines processes:1 --effects bias_step
+
+``--effects`` switches sensor effects on in the simulator (``selfcal replay --effects``):
+with ``bias_step`` every device's offset jumps once, and the calibrator that finds it
+keeps its cells from either side apart from then on (a barrier in the pose store).
 """
 
 from __future__ import annotations
@@ -40,12 +45,15 @@ def main(argv=None) -> int:
     ap.add_argument("--engines", default="processes:1,processes:2,dask:2",
                     help="engine:workers, comma-separated (engines: processes, dask, ray)")
     ap.add_argument("--seed", type=int, default=100)
+    ap.add_argument("--effects", default="", help="sensor effects on, comma-separated (e.g. bias_step)")
     ap.add_argument("--no-stages", action="store_true", help="skip the per-stage figures")
     ap.add_argument("--stage-days", type=float, default=2.0, help="days of the one device timed stage by stage")
     args = ap.parse_args(argv)
     cfg = load_config()
+    effects = tuple(e for e in args.effects.split(",") if e)
     print(f"replay throughput: {args.devices} devices x {args.days:g} days, refit every "
-          f"{args.refit_every_days:g} days, {os.cpu_count()} CPUs\n")
+          f"{args.refit_every_days:g} days, {os.cpu_count()} CPUs"
+          + (f", effects: {', '.join(effects)}" if effects else "") + "\n")
     print("| level | engine | workers | wall s | device-days/s | per core | final sphere RMS mg (median, max) |")
     print("|---|---|---:|---:|---:|---:|---|")
     reference: dict[str, list] = {}
@@ -55,7 +63,8 @@ def main(argv=None) -> int:
             workers = int(n or 1)
             t0 = time.perf_counter()
             res = replay_fleet(args.devices, seed=args.seed, workers=workers, progress=True, engine=engine,
-                               days=args.days, refit_every_days=args.refit_every_days, config=cfg, level=level)
+                               days=args.days, refit_every_days=args.refit_every_days, config=cfg, level=level,
+                               effects=effects)
             wall = time.perf_counter() - t0
             final = np.array([r["refits"][-1]["sphere_norm_rms_mg"] for r in res])
             rate = args.devices * args.days / wall
