@@ -472,13 +472,22 @@ class PoseStore:
         return np.where(sorted_keys[pos] == keys, rows[pos], -1)
 
     def _gate_one(self, running: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Gate decisions (k,) of windows with norms ``d`` against their cells' running statistics."""
-        enough = running[:, _NW] >= self.config.gate_min_windows
+        """Gate decisions (k,) of windows with norms ``d`` against their cells' running statistics.
+
+        The threshold is never below ``gate_abs_g``, so a window within it of its cell's
+        mean norm passes whatever the cell's scatter: the scatter (an eigen-decomposition
+        per cell, :meth:`_derived_from`) is computed for the others only, each from its
+        own row as before (the same decisions, bit for bit)."""
+        c = self.config
+        enough = np.flatnonzero(running[:, _NW] >= c.gate_min_windows)
         out = np.zeros(len(d), dtype=bool)
-        if enough.any():
-            _, dbar, v_win, _ = self._derived_from(running[enough], direction=False)
-            thr = np.maximum(self.config.gate_k * np.sqrt(v_win), self.config.gate_abs_g)
-            out[enough] = np.abs(d[enough] - dbar) > thr
+        if enough.size:
+            s = running[enough]
+            dev = np.abs(d[enough] - s[:, _SD] / s[:, _NW])  # |d - dbar|, as _derived_from has dbar
+            far = ~(dev <= c.gate_abs_g)  # NaN too: decided below as before
+            if far.any():
+                _, _, v_win, _ = self._derived_from(s[far], direction=False)
+                out[enough[far]] = dev[far] > np.maximum(c.gate_k * np.sqrt(v_win), c.gate_abs_g)
         return out
 
     def _gate(self, key: np.ndarray, row: np.ndarray, d: np.ndarray) -> np.ndarray:
