@@ -192,6 +192,9 @@ class OnlineCalibrator:
         self.n_samples = 0
         # online model selection: when it last looked, which effects it added, its recent checks
         self.selection: dict = {"last_check_t_s": None, "added": [], "checks": [], "n_checks": 0}
+        # the last refit's fit settings (its measured cell noise floor): the bias step's
+        # re-estimate and the guard's held-out fit use them; kept in the state
+        self._fit_cfg_now: FitConfig | None = None
 
     # ------------------------------------------------------------------ status
     @property
@@ -1005,6 +1008,7 @@ class OnlineCalibrator:
             "t_last_s": self.t_last_s,
             "n_samples": self.n_samples,
             "selection": self.selection,
+            "fit_sigma_floor_g_now": None if self._fit_cfg_now is None else float(self._fit_cfg_now.sigma_floor_g),
         }
 
     def to_json(self) -> str:
@@ -1068,6 +1072,8 @@ class OnlineCalibrator:
         obj.seeded_prior = d.get("seeded_prior")
         obj.windows_since_refit = d["windows_since_refit"]
         obj.selection = d.get("selection") or {"last_check_t_s": None, "added": [], "checks": [], "n_checks": 0}
+        floor = d.get("fit_sigma_floor_g_now")  # (states written before it was kept: None)
+        obj._fit_cfg_now = None if floor is None else obj.fit_cfg.model_copy(update={"sigma_floor_g": float(floor)})
         return obj
 
 

@@ -83,6 +83,36 @@ def test_checkpoint_resumes_after_a_crash(tmp_path, monkeypatch):
     assert _strip(resumed["refits"]) == _strip(fresh["refits"])
 
 
+def test_a_checkpoint_taken_after_a_bias_step_resumes_to_the_same_refits(tmp_path, monkeypatch):
+    """A calibrator restored from its state once a bias step is recorded: the step's
+    re-estimate and the guard use the last refit's fit settings, which the state keeps
+    (a restored calibrator had none and its first model check raised AttributeError)."""
+    import selfcal.replay as rp
+
+    ck = tmp_path / "ck.json"
+    kwargs = dict(days=45, refit_every_days=3, seed=11, config=CFG, effects=("bias_step",))
+    fresh = replay(**kwargs)
+    assert fresh["bias_steps"]  # the calibrator found the step
+    real_write = rp._atomic_write
+    written = {"step": False}
+
+    def crash_after_the_step(path, text):
+        if written["step"]:
+            raise KeyboardInterrupt("simulated crash")
+        real_write(path, text)
+        written["step"] = bool(json.loads(json.loads(text)["calibrator"])["selection"].get("steps"))
+
+    monkeypatch.setattr(rp, "_atomic_write", crash_after_the_step)
+    with pytest.raises(KeyboardInterrupt):
+        replay(**kwargs, checkpoint=ck)
+    monkeypatch.setattr(rp, "_atomic_write", real_write)
+    state = json.loads(ck.read_text())
+    assert state["done_until"] < 42  # refits with model checks remain after the restore
+    resumed = replay(**kwargs, checkpoint=ck)
+    assert _strip(resumed["refits"]) == _strip(fresh["refits"])
+    assert json.loads(state["calibrator"])["fit_sigma_floor_g_now"] > 0
+
+
 def test_effect_switched_on_degrades_the_base_model():
     """What the base model does with an unmodelled temperature bias: larger residual error.
     (Model selection is off: switched on, it replaces the base model on day 6.)"""
