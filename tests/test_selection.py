@@ -3,6 +3,7 @@ switch as a version with its reason and gain, drops an effect that stops paying,
 effect-free devices alone."""
 
 import copy
+import json
 
 import numpy as np
 import pytest
@@ -233,6 +234,47 @@ def test_a_bias_step_is_found_online_and_the_history_before_it_is_fitted_with_it
     np.testing.assert_array_equal(restored._pose_data(mask, t_end).sd, cal._pose_data(mask, t_end).sd)
     np.testing.assert_array_equal(restored._pose_data(mask, t_end).mean, cal._pose_data(mask, t_end).mean)
     assert restored.store.barriers_s == cal.store.barriers_s == [rec["t_step_s"]]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_calibrator_restored_after_a_step_goes_on_as_the_one_that_never_stopped(seed):
+    """A service restores devices from their state (a restart, a cache eviction, a lease
+    taken over). Restored once a step is recorded, a calibrator must re-estimate the step
+    and check its model as the one that never stopped: it needs the last refit's fit
+    settings, which the state keeps. Without them a restored calibrator whose first refit
+    had a check due raised AttributeError, and a service worker, which retries a failed
+    cycle from the persisted state, failed the same way at every retry."""
+    poses, _ = _step_case(seed, 2.0)
+    args = (poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"])
+    cfg = load_config(None)
+    straight = OnlineCalibrator(cfg, "affine9")
+    ev1 = straight.feed_poses(*args)
+    found = [e for e in ev1 if e.get("mode") == "bias_step"]
+    assert len(found) == 1
+    # restored just before a refit whose model check re-estimates the step: its first
+    # refit (the scheduler's state is in the calibrator's state) is that one
+    checks = [c["t_s"] for c in straight.selection["checks"] if c["t_s"] > found[0]["t_s"]]
+    assert np.all(np.diff(poses["t_s"]) >= 0) and checks
+    cut = int(np.searchsorted(poses["t_s"], checks[0], side="left"))
+    first = OnlineCalibrator(cfg, "affine9")
+    ev2 = first.feed_poses(*(a[:cut] for a in args))
+    assert first.selection.get("steps")  # recorded before the restart
+    restored = OnlineCalibrator.from_json(first.to_json())
+    ev2 += restored.feed_poses(*(a[cut:] for a in args))
+    checks_after = straight.selection["n_checks"] - first.selection["n_checks"]
+    assert checks_after >= 2  # the restored one re-estimated the step and checked its model
+
+    def key(e):
+        return (round(e["t_s"], 3), e["published"], e["reason"], e.get("mode"),
+                None if e.get("calibration") is None else e["calibration"].get("version"))
+
+    def untimed(x):  # the state, without the fits' wall times
+        if isinstance(x, dict):
+            return {k: untimed(v) for k, v in x.items() if k != "fit_ms"}
+        return [untimed(v) for v in x] if isinstance(x, list) else x
+
+    assert [key(e) for e in ev1] == [key(e) for e in ev2]
+    assert untimed(json.loads(restored.to_json())) == untimed(json.loads(straight.to_json()))
 
 
 def test_between_a_step_and_its_discovery_no_version_is_calibrated():
