@@ -190,6 +190,17 @@ def _step_case(seed: int, step_mg: float | None):
     return hidden_effect_case(rng, "bias_step" if step_mg else None, step_mg, n_poses=1500, days=14)
 
 
+def _fed_step_case(seed: int):
+    """:func:`_step_case` with a 2-mg step fed to a default calibrator: ``(poses, truth,
+    feed arguments, config, calibrator, its events, the events that found a step)``."""
+    poses, truth = _step_case(seed, 2.0)
+    args = (poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"])
+    cfg = load_config(None)
+    cal = OnlineCalibrator(cfg, "affine9")
+    events = cal.feed_poses(*args)
+    return poses, truth, args, cfg, cal, events, [e for e in events if e.get("mode") == "bias_step"]
+
+
 def _sphere_error_mg(cal: OnlineCalibrator, truth: dict, t_s: float) -> float:
     """True whole-sphere norm error (mg) of the published model against the sensor as it
     is after the step (at 25 degC, at time ``t_s``)."""
@@ -207,12 +218,7 @@ def test_a_bias_step_is_found_online_and_the_history_before_it_is_fitted_with_it
     within 0.3 mg once re-estimated), publishes a version that names it, keeps the base
     model (no drift switched in to imitate it), and ends far closer to the sensor as it is
     than the same calibrator without step handling, which fits across the step."""
-    poses, truth = _step_case(seed, 2.0)
-    args = (poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"])
-    cfg = load_config(None)
-    cal = OnlineCalibrator(cfg, "affine9")
-    events = cal.feed_poses(*args)
-    found = [e for e in events if e.get("mode") == "bias_step"]
+    poses, truth, args, cfg, cal, events, found = _fed_step_case(seed)
     assert len(found) == 1, [(e["bias_step"]["t_step_s"] / 3600, e["bias_step"]["size_mg"]) for e in found]
     rec = found[0]["bias_step"]
     assert found[0]["published"] and found[0]["calibration"]["bias_step"] == rec
@@ -244,12 +250,7 @@ def test_a_calibrator_restored_after_a_step_goes_on_as_the_one_that_never_stoppe
     settings, which the state keeps. Without them a restored calibrator whose first refit
     had a check due raised AttributeError, and a service worker, which retries a failed
     cycle from the persisted state, failed the same way at every retry."""
-    poses, _ = _step_case(seed, 2.0)
-    args = (poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"])
-    cfg = load_config(None)
-    straight = OnlineCalibrator(cfg, "affine9")
-    ev1 = straight.feed_poses(*args)
-    found = [e for e in ev1 if e.get("mode") == "bias_step"]
+    poses, _, args, cfg, straight, ev1, found = _fed_step_case(seed)
     assert len(found) == 1
     # restored just before a refit whose model check re-estimates the step: its first
     # refit (the scheduler's state is in the calibrator's state) is that one
