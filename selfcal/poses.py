@@ -67,7 +67,8 @@ _UU_COL = np.array([j for _, j in _UU_IDX])
 _UU_FULL = np.array([_UU_IDX.index((min(i, j), max(i, j))) for i in range(3) for j in range(3)])
 
 _NO_TEMP_BAND = 1023
-#: windows of one cell the gate first decides together after a gated one (:meth:`PoseStore._gate_in_order`)
+#: the first span of a cell's windows that the gate decides together when it redoes the
+#: cell in order (:meth:`PoseStore._gate_in_order`; later spans follow the windows passed)
 _GATE_SPAN = 32
 
 
@@ -556,7 +557,7 @@ class PoseStore:
         return out
 
     def _bound(self) -> None:
-        """Coarsen the oldest half of the cells that can be coarsened (merge block pairs),
+        """Coarsen the older half of the cells that can be coarsened (merge block pairs),
         then drop the oldest cells if needed.
 
         A cell cannot be coarsened when its doubled block would hold a barrier (a bias
