@@ -967,13 +967,16 @@ def step(
         keep = min(keep, piece_start)
     keep = min(max(keep, g0), n_total)
     k = keep - g0
+    # the kept samples in one copy, by channel; the state's fields are views of it, so
+    # the next chunk's _by_channel copies contiguous rows back (values unchanged)
+    buf = x[:, k:].copy()
     new_state = DetectorState(
         n_seen=n_total,
         buf_start=keep,
         t_s=t[k:].copy(),
-        acc_g=x[:3, k:].T.copy(),
-        temp_c=x[-1, k:].copy(),
-        pressure_kpa=x[3 : 3 + kp, k:].T.copy(),
+        acc_g=buf[:3].T,
+        temp_c=buf[-1],
+        pressure_kpa=buf[3 : 3 + kp].T,
         n_pressure=kp,
         run_open=run_open,
         piece_start=piece_start,
