@@ -5,7 +5,7 @@ per-axis sd, sample counts, times, temperatures, in the set's raw unit).
 
 Simulated sets (all built on the simulator's sensor model ``selfcal.sim``: a device
 drawn by ``draw_sensor_truth`` with misalignment, non-orthogonality, scale and offset
-errors, white noise and 3.91 mg quantisation; noise-free readings by ``sensor_mean``):
+errors, white noise and 3.90625 mg quantisation; noise-free readings by ``sensor_mean``):
 
 * ``sim_flat``   — flat-heavy insole wear: the simulator's pose-level output
   (``simulate_poses``: standing, sitting, shoe off, a few days), thinned to distinct

@@ -138,3 +138,55 @@ def test_demo_help_names_the_default_hours():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     help_text = sub.choices["demo"].format_help()
     assert f"default {DEFAULT_HOURS:g}" in help_text
+
+
+def _through_the_codec(src: SimSource) -> tuple[np.ndarray, ...]:
+    """Every sample ``src`` streams, as the gateway receives it: packets of
+    ``SAMPLES_PER_PACKET`` encoded as the virtual insole encodes them (the packet's mean
+    temperature), decoded, on device time ``seq / rate``: (t_s, acc_g, temp_c, pressure_kpa)."""
+    from selfcal.gateway import codec
+
+    src.started = True
+    parts = []
+    while (chunk := src()) is not None:
+        parts.append(chunk)
+    _, acc, prs, temp = (np.concatenate([p[i] for p in parts]) for i in range(4))
+    n = len(acc) - len(acc) % SAMPLES_PER_PACKET
+    out_acc, out_prs, out_temp = [], [], []
+    for lo in range(0, n, SAMPLES_PER_PACKET):
+        sl = slice(lo, lo + SAMPLES_PER_PACKET)
+        packet = codec.decode_packet(codec.encode_packet(lo, acc[sl], prs[sl], float(np.mean(temp[sl]))))
+        out_acc.append(packet.acc_g)
+        out_prs.append(packet.pressure_kpa)
+        out_temp.append(np.full(packet.n, packet.temp_c))
+    return (np.arange(n) / src.rate_hz, np.concatenate(out_acc), np.concatenate(out_temp), np.concatenate(out_prs))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(8))
+def test_the_demos_wear_through_the_codec_keeps_the_sphere_promise_of_every_version(seed):
+    """The demo's wear (``DEFAULT_HOURS`` from shoe-on) as the service gets it, through the
+    BLE codec and in the gateway's batches: every published version, provisional as well as
+    calibrated, keeps its sphere promise (true whole-sphere error <= 2.5 x predicted +
+    0.05 mg, :mod:`selfcal.scoring`). Seeds 0-7. While the simulator quantised in 3.91-mg
+    steps, which the codec's 1/4096 g units do not hold, seed 1 broke it (the demo's
+    insole-02: 16.1 mg against 6.2 predicted)."""
+    from selfcal.calibrator import OnlineCalibrator
+    from selfcal.demo import BATCH_SAMPLES, DEFAULT_HOURS
+    from selfcal.scoring import PROMISE_RATIO, PROMISE_SLACK_MG, TruthScorer
+
+    cfg = load_config(None)
+    sim = make_simulation(demo_sim_config(cfg), seed, DEFAULT_HOURS)
+    t, acc, temp, prs = _through_the_codec(SimSource(sim, DEFAULT_HOURS))
+    cal = OnlineCalibrator(config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
+    versions = []
+    for lo in range(0, len(t), BATCH_SAMPLES):
+        sl = slice(lo, lo + BATCH_SAMPLES)
+        versions += [dict(ev["calibration"], version=len(versions) + 1)
+                     for ev in cal.feed_samples(t[sl], acc[sl], temp_c=temp[sl], pressure_kpa=prs[sl])
+                     if ev.get("published")]
+    assert len(versions) >= 3
+    scorer = TruthScorer(sim.truth.to_dict(), versions[-1]["model"])
+    for v in versions:
+        s = scorer.score(v)
+        assert s["true_mg"] <= PROMISE_RATIO * s["predicted_mg"] + PROMISE_SLACK_MG, (v["version"], v["status"], s)

@@ -207,7 +207,8 @@ class SensorConfig(_Strict):
     misalign_deg: float = Field(0.6, ge=0, description="|mounting misalignment| limit per rotation axis")
     noise_sd_mg: Triple = (2.5, 2.5, 3.0)
     range_g: float = Field(8.0, gt=0, description="full scale; readings clip at +-range_g")
-    lsb_mg: float = Field(3.91, ge=0, description="quantisation step (12 bit at +-8 g; 0: none)")
+    lsb_mg: float = Field(3.90625, ge=0, description="quantisation step, mg (12 bit at +-8 g: 16 g / 4096, "
+                          "16 of the BLE codec's 1/4096 g units, so the codec carries it exactly; 0: none)")
 
 
 class EffectConfig(_Strict):
