@@ -235,6 +235,9 @@ def replay(
     base_name = ErrorModel(model).base
     last_cal = cal.calibration()
     sample_iter = sim.iter_samples(chunk_s=3600) if level == "samples" else None
+    # resumed: the periods done took every chunk that starts before their end; the
+    # simulation streams them again from its start, and they are not fed twice
+    fed_until_s = done_until * SECONDS_PER_DAY
     shared_detector = cal.det_cfg == online.det_cfg
     pending = None
     for b in boundaries:
@@ -255,6 +258,8 @@ def replay(
                 pending = None
                 if chunk is None:
                     break
+                if chunk.t_s[0] < fed_until_s:
+                    continue
                 if chunk.t_s[0] >= hi:
                     pending = chunk
                     break

@@ -60,26 +60,36 @@ def _strip(rows):
     return [{k: v for k, v in r.items() if k != "fit_ms"} for r in rows]
 
 
-def test_checkpoint_resumes_after_a_crash(tmp_path, monkeypatch):
+@pytest.mark.parametrize("level, every, days, crash_after", [
+    ("poses", 1, 4, 2),
+    ("samples", 1, 3, 1),  # the 20 Hz stream through the detector
+    ("samples", 0, 3, 1),  # the calibrator's own scheduler (checkpoints at day ends)
+])
+def test_checkpoint_resumes_after_a_crash(tmp_path, monkeypatch, level, every, days, crash_after):
+    """A replay crashed after its checkpoints goes on to the uninterrupted refits. At the
+    samples level the resumed simulation streams from its start again: the chunks the
+    periods done had fed are skipped (they were fed a second time, and the refits of a
+    resumed 3-day replay differed from day 2 on)."""
     import selfcal.replay as rp
 
     ck = tmp_path / "ck.json"
-    fresh = replay(days=4, refit_every_days=1, seed=11, config=CFG)
+    kwargs = dict(days=days, refit_every_days=every, seed=11, config=CFG, level=level)
+    fresh = replay(**kwargs)
     real_write = rp._atomic_write
     writes = {"n": 0}
 
-    def crash_after_two(path, text):
-        if writes["n"] == 2:
+    def crash(path, text):
+        if writes["n"] == crash_after:
             raise KeyboardInterrupt("simulated crash")
         writes["n"] += 1
         real_write(path, text)
 
-    monkeypatch.setattr(rp, "_atomic_write", crash_after_two)
+    monkeypatch.setattr(rp, "_atomic_write", crash)
     with pytest.raises(KeyboardInterrupt):
-        replay(days=4, refit_every_days=1, seed=11, config=CFG, checkpoint=ck)
+        replay(**kwargs, checkpoint=ck)
     monkeypatch.setattr(rp, "_atomic_write", real_write)
-    assert json.loads(ck.read_text())["done_until"] == 2.0
-    resumed = replay(days=4, refit_every_days=1, seed=11, config=CFG, checkpoint=ck)
+    assert json.loads(ck.read_text())["done_until"] == float(crash_after)
+    resumed = replay(**kwargs, checkpoint=ck)
     assert _strip(resumed["refits"]) == _strip(fresh["refits"])
 
 
