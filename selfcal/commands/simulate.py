@@ -30,7 +30,9 @@ if TYPE_CHECKING:  # the simulator itself loads when the command runs (scipy.sig
     from selfcal.sim.simulator import PoseTable, Simulation
 
 SAMPLE_COLUMNS = ("t_s", "ax_g", "ay_g", "az_g", "temp_c", "p1_kpa", "p2_kpa", "p3_kpa", "p4_kpa")
-_FMT = "%.4f,%.6f,%.6f,%.6f,%.2f,%.2f,%.2f,%.2f,%.2f"
+#: 8 decimals of g hold the simulated sensor's 1/256-g steps exactly (6 rounded every level by up
+#: to 0.5 ug, the same way at every window of a posture: a small coherent error, docs/simulation.md)
+_FMT = "%.4f,%.8f,%.8f,%.8f,%.2f,%.2f,%.2f,%.2f,%.2f"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
