@@ -320,7 +320,10 @@ class PoseStore:
         The store is bounded (``max_cells``) right after the window that takes it past
         the bound, as it would be if the windows came one at a time. So with the caller's
         scheduler stopping at ``max_new_cells``, no outcome depends on how a stream of
-        windows is split into calls.
+        windows is split into calls, and the store is the same bit for bit: a cell's
+        windows are added to it in order and new cells appended in the order they came
+        (a window within rounding of its gate's threshold aside: the gate's running sums
+        within a call are taken across its key groups, :meth:`_gate`).
         """
         mean = np.atleast_2d(np.asarray(mean_g, dtype=float))
         k = mean.shape[0]
@@ -404,32 +407,44 @@ class PoseStore:
             if cut < len(key):
                 key, row, t_s, gated = key[:cut], row[:cut], t_s[:cut], gated[:cut]
                 out["consumed"] = int(valid_idx[cut - 1]) + 1
-                ukeys, inv = np.unique(key, return_inverse=True)
+                ukeys, first, inv = np.unique(key, return_index=True, return_inverse=True)
                 target = self._rows_of(ukeys)
         out["gated"] = int(gated.sum())
         self.n_gated += out["gated"]
-        # accumulate per key
+        # accumulate per key, as one call per window would: each cell's windows added to it
+        # in order, ((stored + w1) + w2) + ..., not stored + (w1 + w2), so that how the
+        # windows were split into calls changes no bit of the sums (a service worker that
+        # restores a device feeds the batches since its checkpoint in one call)
+        exist = target >= 0
         if len(ukeys) == len(key):  # each key once (the usual batch): no accumulation
             sums = np.empty((len(ukeys), N_STATS))
             sums[inv] = row + 0.0  # as np.add.at into zeros makes it (-0.0 becomes 0.0)
             tmin = np.empty(len(ukeys))
             tmin[inv] = t_s
             tmax = tmin
-        else:
-            sums = sum_by_group(inv, row, len(ukeys))
+            with_stored = False
+        else:  # the stored rows first in each group: sum_by_group adds in input order
+            ex = np.flatnonzero(exist)
+            sums = sum_by_group(np.concatenate([ex, inv]), np.concatenate([self.stats[target[ex]], row]),
+                                len(ukeys))
             tmin = np.full(len(ukeys), np.inf)
             tmax = np.full(len(ukeys), -np.inf)
             np.minimum.at(tmin, inv, t_s)
             np.maximum.at(tmax, inv, t_s)
-        exist = target >= 0
+            with_stored = True
         if exist.any():
             t = target[exist]
-            self.stats[t] += sums[exist]
+            if with_stored:
+                self.stats[t] = sums[exist]
+            else:
+                self.stats[t] += sums[exist]
             self._changed(t)  # an in-place change: those rows' derived values are stale
             self.t_first[t] = np.minimum(self.t_first[t], tmin[exist])
             self.t_last[t] = np.maximum(self.t_last[t], tmax[exist])
-        new = ~exist
-        if new.any():
+        # new cells in the order their first windows came (as one call per window appends them)
+        new = np.flatnonzero(~exist)
+        new = new[np.argsort(first[new], kind="stable")]
+        if new.size:
             self.key = np.concatenate([self.key, ukeys[new]])
             stored, self.stats = self.stats, np.vstack([self.stats, sums[new]])
             self._changed(np.arange(len(stored), len(self)), before=stored)
@@ -437,7 +452,7 @@ class PoseStore:
             self.t_last = np.concatenate([self.t_last, tmax[new]])
             self._index_stale()
         out["added"] = int(len(key))
-        out["new_cells"] = int(new.sum())
+        out["new_cells"] = int(new.size)
         out["new_info"] = out["new_cells"]
         self.n_seen += int(len(key))
         if len(self) > self.config.max_cells:

@@ -431,13 +431,13 @@ class RefitWorker:
 
     def _restore(self, rec: DeviceRecord) -> Calibrator:
         """The device's calibrator as of ``rec.processed_seq``: its checkpoint (or a fresh
-        one), then the batches fed after the checkpoint fed again in seq order. The
-        calibrator gives the same state however its samples are split into calls
-        (tests/test_calibrator.py) up to rounding: the pose store's sums can differ in
-        their last bits when the replay's calls are not the first feed's (after a refused
-        batch, which the first feed isolated), so the replay reproduces the state the
-        last cycle had, and its calibrations to ~1e-9; its refit events were published
-        then and are dropped now."""
+        one), then the batches fed after the checkpoint fed again in seq order, up to
+        ``max_batches`` a call. The calibrator gives the same state, bit for bit, however
+        its samples are split into calls (tests/test_calibrator.py: the detector's windows
+        do not depend on the chunks, and the pose store adds a cell's windows to it in
+        order and appends new cells in the order they came), so the replay reproduces the
+        state the last cycle had; its refit events were published then and are dropped
+        now."""
         self._forget(rec.device_id)
         full = self.store.load_device(rec.device_id, with_state=True)
         if full is None or full.processed_seq != rec.processed_seq or full.state_rev != rec.state_rev:

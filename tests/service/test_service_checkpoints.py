@@ -92,7 +92,9 @@ def _same_calibration(a, b) -> None:
         assert ca.keys() == cb.keys()
         pa, pb = ca["params"], cb["params"]
         assert pa.keys() == pb.keys()
-        np.testing.assert_allclose([pa[k] for k in pa], [pb[k] for k in pa], rtol=1e-9, atol=1e-12)
+        # bit for bit: the replay feeds the batches since the checkpoint in one call, and the
+        # pose store's sums do not depend on how windows are split into calls
+        assert pa == pb and ca["std"] == cb["std"]
 
 
 def test_a_worker_that_restores_from_a_checkpoint_publishes_what_one_that_never_stopped_does(tmp_path, stream):
@@ -136,8 +138,7 @@ def test_a_worker_that_restores_from_a_checkpoint_publishes_what_one_that_never_
         assert third.replays == 0
         want = ref._calibrator(ref_store.load_device("ins", with_state=False)).calibration()
         got = cal.calibration()
-        np.testing.assert_allclose([got["params"][k] for k in want["params"]],
-                                   [want["params"][k] for k in want["params"]], rtol=1e-9, atol=1e-12)
+        assert got["params"] == want["params"] and got["std"] == want["std"]
     finally:
         store.close()
         ref_store.close()
