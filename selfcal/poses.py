@@ -70,6 +70,9 @@ _NO_TEMP_BAND = 1023
 #: the first span of a cell's windows that the gate decides together when it redoes the
 #: cell in order (:meth:`PoseStore._gate_in_order`; later spans follow the windows passed)
 _GATE_SPAN = 32
+#: A window with ``|mean|`` or a per-axis sd at or past this (g, normalised units) is no
+#: still pose (gravity is 1 g; sensors saturate at tens of g): a corrupt packet.
+_MAX_STILL_G = 1e3
 
 
 class PoseConfig(BaseModel):
@@ -356,10 +359,12 @@ class PoseStore:
         sd = np.full((k, 3), 3e-3) if sd_g is None else np.where(np.isfinite(sd_g), sd_g, 3e-3)
         with np.errstate(over="ignore", invalid="ignore"):
             norm = np.sqrt(np.einsum("ij,ij->i", mean, mean)) if k else np.zeros(0)
-            # a window whose statistics would overflow (|mean| or sd past ~1e154 g) is no still
-            # pose: stored, its inf would make the sums of its cell (and the gate's running
-            # sums of every window sorted after it in the batch) NaN
-            representable = np.isfinite(norm * norm) & np.all(np.isfinite(sd * sd), axis=1)
+            # a window with |mean| or sd past _MAX_STILL_G is no still pose: stored, its huge
+            # (or, past ~1e154 g, overflowing) sums spoil its cell's, and the gate's running
+            # sums of every window sorted after it in the call (differences of one cumsum
+            # across the call's cells), so that another window's decision depended on the
+            # call it came in
+            representable = (norm < _MAX_STILL_G) & np.all(sd < _MAX_STILL_G, axis=1)
         valid = (np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s) & (count >= 1)
                  & representable)
         out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0, "consumed": k}
@@ -453,6 +458,11 @@ class PoseStore:
             self._index_stale()
         out["added"] = int(len(key))
         out["new_cells"] = int(new.size)
+        if max_new_cells is not None and new.size >= max_new_cells:
+            # stopped at the window that opened the last cell allowed: invalid windows after
+            # it are the next call's, as one call per window would leave them (the caller's
+            # clock must not run past the refit this stop is for)
+            out["consumed"] = int(valid_idx[len(key) - 1]) + 1
         out["new_info"] = out["new_cells"]
         self.n_seen += int(len(key))
         if len(self) > self.config.max_cells:

@@ -264,3 +264,37 @@ def test_the_gate_in_order_is_the_one_window_at_a_time_loop_bit_for_bit():
         np.testing.assert_array_equal(fast.key, slow.key)
         np.testing.assert_array_equal(fast.stats, slow.stats)
         assert fast.n_gated == slow.n_gated
+
+
+def test_a_window_past_1000_g_is_no_still_pose_and_changes_no_other_gate_decision():
+    """A finite but absurd window (|mean| of 1e8 g: a corrupt packet) passed the old
+    overflow check. Its cell sorted before +z's, and the gate's running sums (differences of
+    one cumsum across the call's cells) lost the +z window before the one decided: a window
+    4.4 mg inside its threshold was gated when the three came in one call and not one by
+    one. Past 1000 g a window is left out, and the call decides as one window a call does."""
+    z = np.array([0.0, 0.0, 1.0])
+    for m in (1e3, 1e8, 1e100):
+        stores, outs = [], []
+        for one_by_one in (False, True):
+            s = PoseStore.empty()
+            s.add(np.array([z, z]), np.full((2, 3), 3e-3), np.full(2, 200.0), np.array([0.0, 1.0]), np.full(2, 25.0))
+            mean = np.array([[-m, 0.0, 0.0], z * 1.009, z * 1.025])
+            args = (np.full((3, 3), 3e-3), np.full(3, 200.0), np.array([2.0, 3.0, 4.0]), np.full(3, 25.0))
+            parts = [slice(i, i + 1) for i in range(3)] if one_by_one else [slice(0, 3)]
+            outs.append([s.add(mean[p], *(x[p] for x in args)) for p in parts])
+            stores.append(s)
+        assert sum(o["added"] for o in outs[0]) == 2  # the absurd window is not stored
+        _assert_same_store(*stores)
+        assert stores[0].n_gated == 0  # w2 (25 mg off) is inside its threshold
+
+
+def test_a_cap_on_new_cells_stops_at_the_window_that_opens_the_last_one_before_invalid_windows():
+    """With ``max_new_cells``, the call stops at the window that opens the last cell
+    allowed, as one window a call does; an invalid window right after it was consumed with
+    it, so the calibrator's clock ran to that window's time before the refit the stop is for."""
+    z, x = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    for bad in ([0.0, 0.0, 0.0], [np.nan, 0.0, 1.0], [0.0, 0.0, 1e9]):
+        s = PoseStore.empty()
+        out = s.add(np.array([z, x, bad]), np.full((3, 3), 3e-3), np.full(3, 200.0), np.array([0.0, 10.0, 20.0]),
+                    None, max_new_cells=2)
+        assert (out["consumed"], out["added"], out["new_cells"]) == (2, 2, 2), bad
