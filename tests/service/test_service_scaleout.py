@@ -9,7 +9,7 @@ acknowledged. Mid-ingest one ``selfcal worker`` and one API process get ``kill -
 Afterwards, for every device: every acknowledged batch is stored once and fed once
 (``samples_processed`` counts each fed sample once; every batch row is ``fed``), and
 the published versions equal those of a single in-process calibrator fed the same
-stream (the same number, the same parameters to 1e-9).
+stream (the same number, the same parameters bit for bit).
 """
 
 from __future__ import annotations
@@ -159,9 +159,11 @@ def test_kill9_of_a_worker_and_an_api_process_loses_nothing_and_matches_one_proc
             got = [v["calibration"]["params"] for v in histories[dev]["versions"] if v["source"] == "refit"]
             want = reference_versions(srv.config, streams[dev])
             assert len(got) == len(want) >= 3, (dev, len(got), len(want))
+            # bit for bit, however the workers' cycles grouped the batches (the pose store
+            # adds a cell's windows in order: before, the last bits moved with the timing)
             for g, w in zip(got, want):
                 for k in w:
-                    assert g[k] == pytest.approx(w[k], abs=1e-9, rel=0), (dev, k, g[k], w[k])
+                    assert g[k] == w[k], (dev, k, g[k], w[k])
         with psycopg.connect(srv.db_arg) as conn:
             states = dict(conn.execute("SELECT state, COUNT(*) FROM batches GROUP BY state").fetchall())
         assert states == {1: len(DEVICES) * N_POSES}, states  # every batch fed, none pending or rejected
