@@ -419,30 +419,26 @@ class PoseStore:
         # accumulate per key, as one call per window would: each cell's windows added to it
         # in order, ((stored + w1) + w2) + ..., not stored + (w1 + w2), so that how the
         # windows were split into calls changes no bit of the sums (a service worker that
-        # restores a device feeds the batches since its checkpoint in one call)
+        # restores a device feeds the batches since its checkpoint in one call); sums: each
+        # key's new total, its stored row included
         exist = target >= 0
+        t = target[exist]
         if len(ukeys) == len(key):  # each key once (the usual batch): no accumulation
             sums = np.empty((len(ukeys), N_STATS))
             sums[inv] = row + 0.0  # as np.add.at into zeros makes it (-0.0 becomes 0.0)
+            sums[exist] += self.stats[t]  # stored + window (an IEEE sum does not depend on the order of two terms)
             tmin = np.empty(len(ukeys))
             tmin[inv] = t_s
             tmax = tmin
-            with_stored = False
         else:  # the stored rows first in each group: sum_by_group adds in input order
-            ex = np.flatnonzero(exist)
-            sums = sum_by_group(np.concatenate([ex, inv]), np.concatenate([self.stats[target[ex]], row]),
+            sums = sum_by_group(np.concatenate([np.flatnonzero(exist), inv]), np.concatenate([self.stats[t], row]),
                                 len(ukeys))
             tmin = np.full(len(ukeys), np.inf)
             tmax = np.full(len(ukeys), -np.inf)
             np.minimum.at(tmin, inv, t_s)
             np.maximum.at(tmax, inv, t_s)
-            with_stored = True
-        if exist.any():
-            t = target[exist]
-            if with_stored:
-                self.stats[t] = sums[exist]
-            else:
-                self.stats[t] += sums[exist]
+        if t.size:
+            self.stats[t] = sums[exist]
             self._changed(t)  # an in-place change: those rows' derived values are stale
             self.t_first[t] = np.minimum(self.t_first[t], tmin[exist])
             self.t_last[t] = np.maximum(self.t_last[t], tmax[exist])
