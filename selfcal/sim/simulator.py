@@ -20,7 +20,7 @@ import numpy as np
 
 from selfcal.sim.config import SimConfig
 from selfcal.sim.motion import gait_force, gravity_foot, lowpass_noise, move_force
-from selfcal.sim.pressure import pressure_kpa
+from selfcal.sim.pressure import pressure_by_channel
 from selfcal.sim.sensor import SensorTruth, draw_sensor_truth, read_out, sensor_mean
 from selfcal.sim.temperature import temperature_at
 from selfcal.sim.wearer import (
@@ -248,30 +248,35 @@ class Simulation:
         i0 = int(s.start[a])
         total = int(counts.sum())
         loc = s.start[a:b] - i0
-        # true specific force: gravity everywhere, then sway, moves, gait
-        f = np.repeat(gravity_foot(s.pitch0[a:b], s.roll0[a:b]), counts, axis=0)
+        # true specific force by axis (3, n): gravity everywhere, then sway, moves, gait
+        # (each axis a contiguous row: on (n, 3) rows a broadcast or a row selection runs
+        # an inner loop of 3 a row; the same draws and values bit for bit)
+        f_axes = np.repeat(gravity_foot(s.pitch0[a:b], s.roll0[a:b]).T, counts, axis=1)
         motion = s.motion[a:b]
         phase = np.full(total, np.nan)
         still_mask = np.repeat(motion == STILL, counts)
         sway = np.repeat(np.where(motion == STILL, s.sd_g[a:b], 0.0), counts)
         swaying = np.flatnonzero(sway > 0)  # rows by integer index: the same values, faster than a mask
         if len(swaying):
-            k = len(swaying)
-            f[swaying] += lowpass_noise(rngs["motion"], k, rate, cfg.posture.sway_corner_hz) * sway[swaying, None]
+            noise = lowpass_noise(rngs["motion"], len(swaying), rate, cfg.posture.sway_corner_hz)
+            sway_sw = sway[swaying]
+            for c in range(3):
+                f_axes[c, swaying] += noise[:, c] * sway_sw
         mv = np.flatnonzero(motion == MOVE)
         if len(mv):
             j = a + mv
             pos = _positions(loc[mv], counts[mv])
-            f[pos] = move_force(s.pitch0[j], s.roll0[j], s.pitch1[j], s.roll1[j], s.sd_g[j], counts[mv],
-                                rngs["motion"], rate)
+            f_axes[:, pos] = move_force(s.pitch0[j], s.roll0[j], s.pitch1[j], s.roll1[j], s.sd_g[j], counts[mv],
+                                        rngs["motion"], rate).T
         for k in np.flatnonzero(motion == GAIT).tolist():
             j = a + k
             n = int(counts[k])
             fg, ph = gait_force(n, rate, float(s.cycle_s[j]), float(s.stride_m[j]), float(s.slope_rad[j]),
                                 float(s.climb[j]), float(s.pitch0[j]), bool(s.activity[j] == STAIRS),
                                 cfg.gait, rngs["motion"])
-            f[loc[k]:loc[k] + n] = fg
+            f_axes[:, loc[k]:loc[k] + n] = fg.T
             phase[loc[k]:loc[k] + n] = ph
+        f = f_axes.T  # (n, 3), a view
         index = np.arange(i0, i0 + total, dtype=np.int64)
         t_s = index / rate
         per_sample = lambda x: np.repeat(x[a:b], counts, axis=0)  # noqa: E731 - x[seg], as a faster copy
@@ -282,9 +287,11 @@ class Simulation:
         raw = read_out(self.truth.sensor, sensor_mean(self.truth.sensor, f, temp_true, t_s), rngs["noise"])
         temp_rep = _report_temperature(temp_true, cfg, rngs["temperature"])
         moving = np.repeat(motion == MOVE, counts)
-        press = pressure_kpa(per_sample(s.load), phase, moving, s.stand_kpa, cfg.pressure, rngs["pressure"], rate)
+        press = pressure_by_channel(np.repeat(s.load[a:b].T, counts, axis=1), phase, moving, s.stand_kpa,
+                                    cfg.pressure, rngs["pressure"], rate).T
         keep = _radio_keep(index, cfg.ble.samples_per_packet, cfg.ble.packet_loss_rate, rngs["radio"], carry)
-        rows = lambda x: np.compress(keep, x, axis=0)  # noqa: E731 - the same rows as x[keep], faster on (n, k)
+        # the same rows as x[keep], faster on (n, k), and C-contiguous (f and press are views by axis)
+        rows = lambda x: np.ascontiguousarray(np.compress(keep, x, axis=0))  # noqa: E731
         return SampleChunk(
             t_s=t_s[keep], acc_g=rows(raw), temp_c=temp_rep[keep], pressure_kpa=rows(press),
             a_true_g=rows(f), temp_true_c=temp_true[keep], activity=np.repeat(s.activity[a:b], counts)[keep],
