@@ -123,6 +123,44 @@ def _group_edges(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, last
 
 
+def _running_sums(start_rows: np.ndarray, rows: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """Each group's running sums before each of its rows, added in order from its start row.
+
+    ``rows`` (k, m) come in groups of consecutive rows (``first``: (k,) bool, a group's first
+    row); ``start_rows`` (k, m) holds each group's start on its first row (the others are
+    not read). Row i of the result is ``((start + r_a) + r_a+1) + ... + r_i-1`` over the
+    earlier rows of its group, in that order, plus 0.0: bit for bit what adding the rows one
+    at a time gives (a difference of one cumsum across groups is not: it rounds). One
+    sequential cumsum per group when the groups are few, else one vectorised step per
+    position in a group (the loop runs min(groups, longest group) times).
+    """
+    k = rows.shape[0]
+    out = np.empty_like(rows)
+    if k == 0:
+        return out
+    firsts = np.flatnonzero(first)
+    ends = np.r_[firsts[1:], k]
+    longest = int((ends - firsts).max())
+    if len(firsts) <= longest:
+        for a, b in zip(firsts.tolist(), ends.tolist()):
+            out[a] = start_rows[a]
+            if b - a > 1:
+                np.cumsum(np.vstack([start_rows[a][None, :], rows[a:b - 1]]), axis=0, out=out[a:b])
+    else:
+        group = np.cumsum(first) - 1
+        pos = np.arange(k) - firsts[group]
+        run = start_rows[firsts].copy()
+        by_pos = np.argsort(pos, kind="stable")
+        cuts = np.r_[0, np.cumsum(np.bincount(pos))]
+        for j in range(longest):
+            r = by_pos[cuts[j]:cuts[j + 1]]  # the j-th row of each group that has one
+            g = group[r]
+            out[r] = run[g]
+            run[g] += rows[r]  # one row per group: run[g] = run[g] + rows[r]
+    out += 0.0  # as one window a call: a cell's stored sums never hold -0.0
+    return out
+
+
 def _enc(a: np.ndarray) -> str:
     return base64.b64encode(np.ascontiguousarray(a, dtype="<f8").tobytes()).decode("ascii")
 
@@ -324,9 +362,8 @@ class PoseStore:
         the bound, as it would be if the windows came one at a time. So with the caller's
         scheduler stopping at ``max_new_cells``, no outcome depends on how a stream of
         windows is split into calls, and the store is the same bit for bit: a cell's
-        windows are added to it in order and new cells appended in the order they came
-        (a window within rounding of its gate's threshold aside: the gate's running sums
-        within a call are taken across its key groups, :meth:`_gate`).
+        windows are added to it in order and new cells appended in the order they came,
+        and each window is gated against its cell's running sums added in that order too.
         """
         mean = np.atleast_2d(np.asarray(mean_g, dtype=float))
         k = mean.shape[0]
@@ -360,10 +397,7 @@ class PoseStore:
         with np.errstate(over="ignore", invalid="ignore"):
             norm = np.sqrt(np.einsum("ij,ij->i", mean, mean)) if k else np.zeros(0)
             # a window with |mean| or sd past _MAX_STILL_G is no still pose: stored, its huge
-            # (or, past ~1e154 g, overflowing) sums spoil its cell's, and the gate's running
-            # sums of every window sorted after it in the call (differences of one cumsum
-            # across the call's cells), so that another window's decision depended on the
-            # call it came in
+            # (or, past ~1e154 g, overflowing) sums would spoil its cell's for good
             representable = (norm < _MAX_STILL_G) & np.all(sd < _MAX_STILL_G, axis=1)
         valid = (np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s) & (count >= 1)
                  & representable)
@@ -379,7 +413,6 @@ class PoseStore:
         key = self._keys(u, temp, t_s)
         # the windows up to the one that opens the last new cell allowed (the caller's, or the
         # one past max_cells): the gate's decisions for them do not depend on later windows
-        # (up to rounding: the batch's running sums are taken across its key groups)
         cap = self.config.max_cells + 1 - len(self)
         if max_new_cells is not None:
             cap = min(cap, int(max_new_cells))
@@ -517,30 +550,25 @@ class PoseStore:
         """Which windows go to their cell's outlier twin, exactly as if added one at a time.
 
         Each window is compared with its cell as it stands just before it (stored windows
-        plus the earlier, not gated, windows of this batch): vectorised with running sums,
-        and a group that a gate decision changes is redone in order
-        (:meth:`_gate_in_order`). The result
-        does not depend on how the windows were split into calls, up to rounding: the
-        running sums are taken across the batch's key groups, so a window within a few ulps
-        of its threshold can be decided either way by the other windows of its batch.
+        plus the earlier, not gated, windows of this batch): the running sums of each cell
+        are added in order from its stored row, as one call per window adds them
+        (:func:`_running_sums`), so the decisions do not depend on how the windows were
+        split into calls, bit for bit; a group that a gate decision changes is redone in
+        order (:meth:`_gate_in_order`).
         """
         k = len(key)
         if k == 1:  # one window (a service batch): its cell as stored, nothing before it
             idx = self._rows_of(key)
             pre = self.stats[idx] if idx[0] >= 0 else np.zeros((1, N_STATS))
-            zero = row - row
-            return self._gate_one(pre + (zero - zero), d)  # the general path's arithmetic for k = 1
+            return self._gate_one(pre + 0.0, d)  # as the general path: + 0.0 (-0.0 becomes 0.0)
         order = np.argsort(key, kind="stable")
         ks, rs, ds = key[order], row[order], d[order]
         start, last = _group_edges(ks)
-        first = np.maximum.accumulate(np.where(start, np.arange(k), 0))
-        csum = np.cumsum(rs, axis=0)
-        before = csum - rs - (csum[first] - rs[first])  # earlier windows of the same key, this batch
         idx = self._rows_of(ks)
         pre = np.zeros((k, N_STATS))
         if (idx >= 0).any():
             pre[idx >= 0] = self.stats[idx[idx >= 0]]
-        gated_s = self._gate_one(pre + before, ds)
+        gated_s = self._gate_one(_running_sums(pre, rs, start), ds)
         # a gated window with later windows in its group (none when nothing is gated)
         redo = np.unique(ks[gated_s & ~last]) if gated_s.any() else ()
         for kk in redo:

@@ -298,3 +298,77 @@ def test_a_cap_on_new_cells_stops_at_the_window_that_opens_the_last_one_before_i
         out = s.add(np.array([z, x, bad]), np.full((3, 3), 3e-3), np.full(3, 200.0), np.array([0.0, 10.0, 20.0]),
                     None, max_new_cells=2)
         assert (out["consumed"], out["added"], out["new_cells"]) == (2, 2, 2), bad
+
+
+def test_a_window_at_its_gate_threshold_is_decided_as_one_window_a_call_decides_it():
+    """A window whose norm is within a few ulps of its gate's threshold (``gate_abs_g`` off
+    its cell's running mean norm) after a batch's other cell, sorted before it, whose norms
+    are far from 1. Its cell's running sums were differences of one cumsum across the
+    batch's cells, which rounded: for 2 of 121 neighbouring norms the batch gated the
+    window and one call per window did not (or the other way). They are now added in order
+    from the stored row, so every neighbour is decided alike, on every seed."""
+    from selfcal import poses
+
+    dirs = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])
+    probe = PoseStore.empty()
+    probe.t_origin = 0.0
+    order = np.argsort(probe._keys(dirs, np.full(6, 25.0), np.full(6, 10.0)))
+    first, last = dirs[order[0]], dirs[order[-1]]  # the other cell sorts before the window's
+    sd1, n1, temp1 = np.full((1, 3), 3e-3), np.full(1, 200.0), np.full(1, 25.0)
+    for seed in range(8):
+        rng = np.random.default_rng(seed)
+        stored_d, other_d, d1 = 1e-4 * rng.normal(0, 1, 3), 0.9 + 0.01 * rng.random(60), 1e-4 * rng.normal()
+
+        def store_with_a_cell():
+            s = PoseStore.empty()
+            for i, dd in enumerate(stored_d):
+                s.add((last * (1 + dd))[None], sd1, n1, np.array([float(i)]), temp1)
+            return s
+
+        ref = store_with_a_cell()
+        ref.add((last * (1 + d1))[None], sd1, n1, np.array([100.0]), temp1)
+        row = ref.stats[ref._rows_of(ref.key[-1:])[0]]
+        at_threshold = 1.0 + row[poses._SD] / row[poses._NW] + ref.config.gate_abs_g
+        norms = [at_threshold]
+        for direction in (np.inf, -np.inf):
+            x = at_threshold
+            for _ in range(60):
+                x = np.nextafter(x, direction)
+                norms.append(x)
+        k = len(other_d) + 2
+        sd, n, temp = np.full((k, 3), 3e-3), np.full(k, 200.0), np.full(k, 25.0)
+        t = np.r_[np.arange(len(other_d)) + 200.0, 300.0, 301.0]
+        gated = 0
+        for norm in norms:
+            mean = np.vstack([first * (1 + other_d[:, None]), last * (1 + d1), last * norm])
+            batch, one = store_with_a_cell(), store_with_a_cell()
+            batch.add(mean, sd, n, t, temp)
+            for i in range(k):
+                one.add(mean[i:i + 1], sd[i:i + 1], n[i:i + 1], t[i:i + 1], temp[i:i + 1])
+            _assert_same_store(batch, one)
+            gated += one.n_gated
+        assert 0 < gated < len(norms)  # the threshold lies among the norms tried
+
+
+def test_running_sums_are_those_of_adding_the_rows_one_at_a_time():
+    """``_running_sums`` (each group's sums before each row, from its start row) equals the
+    plain loop bit for bit, with few long groups (a cumsum per group) and many short ones
+    (a step per position), rows of mixed magnitudes and signed zeros."""
+    from selfcal.poses import _running_sums
+
+    rng = np.random.default_rng(3)
+    for sizes in ([1], [7], [1, 1, 1], [40, 2, 1], [2] * 50, [1, 3, 1, 2, 5, 1, 1, 1], list(rng.integers(1, 6, 300))):
+        k = int(np.sum(sizes))
+        rows = rng.normal(0, 1, (k, 5)) * 10.0 ** rng.integers(-8, 8, (k, 1))
+        rows[rng.random((k, 5)) < 0.1] = -0.0
+        first = np.zeros(k, dtype=bool)
+        first[np.r_[0, np.cumsum(sizes)[:-1]]] = True
+        start = rng.normal(0, 1, (k, 5)) * 1e3
+        start[0, 0] = -0.0
+        want = np.empty_like(rows)
+        for i in range(k):
+            run = start[i].copy() if first[i] else run + rows[i - 1]
+            want[i] = run + 0.0
+        got = _running_sums(start, rows, first)
+        np.testing.assert_array_equal(got, want)
+        assert not np.signbit(got[got == 0]).any()
