@@ -526,9 +526,13 @@ class OnlineCalibrator:
 
     def set_selection(self, section_: dict | None) -> None:
         """Replace the ``[selection]`` settings (a service applies its current ones to a
-        restored device); the selection history is kept."""
+        restored device); the selection history is kept. None: the defaults, and no
+        ``selection`` section in the state, as a calibrator made without one has."""
         self.sel_cfg = SelectionConfig.from_section(section_)
-        self.config["selection"] = dict(section_ or {})
+        if section_ is None:
+            self.config.pop("selection", None)
+        else:
+            self.config["selection"] = dict(section_)
 
     def _prior_of(self, target: ErrorModel) -> Prior:
         """The prior of another model: this one's (datasheet or installed) for the shared terms."""

@@ -456,3 +456,17 @@ def test_a_worker_waiting_to_lease_a_device_is_not_idle():
     assert not w.idle()
     w._leasing = False
     assert w.idle()
+
+
+def test_a_restored_calibrator_states_what_a_new_one_does_when_the_service_has_no_selection_section():
+    """The factory applies the service's ``[selection]`` to a restored calibrator; with no
+    such section it used to add an empty one to the state, so a restored device's state
+    text (and checkpoint digest) differed from the live one's. Now the same, both ways."""
+    from selfcal.config import load_config
+    from selfcal_service.worker import CalibratorFactory
+
+    full = {k: v for k, v in load_config().items() if k not in ("service", "gateway")}
+    for config in ({k: v for k, v in full.items() if k != "selection"}, full):
+        factory = CalibratorFactory("selfcal.calibrator:OnlineCalibrator", config=config)
+        live = factory.create()
+        assert factory.restore(live.to_json()).to_json() == live.to_json()
