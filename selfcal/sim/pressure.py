@@ -47,7 +47,7 @@ def gait_pressure_profile_by_channel(phase: np.ndarray) -> np.ndarray:
     return prof
 
 
-def pressure_kpa(
+def pressure_by_channel(
     load: np.ndarray,
     gait_phase: np.ndarray,
     moving: np.ndarray,
@@ -56,12 +56,13 @@ def pressure_kpa(
     rng: np.random.Generator,
     rate_hz: float,
 ) -> np.ndarray:
-    """Pressure samples for a chunk.
+    """Pressure samples for a chunk, by channel.
 
     Parameters
     ----------
-    load : ndarray, shape (n, 4)
-        Per-sample load relative to standing (NaN on gait samples).
+    load : ndarray, shape (4, n)
+        Per-sample load relative to standing (NaN on gait samples), by channel; the
+        result is computed in it (overwritten).
     gait_phase : ndarray, shape (n,)
         Gait phase on gait samples, NaN elsewhere.
     moving : ndarray of bool, shape (n,)
@@ -74,27 +75,10 @@ def pressure_kpa(
 
     Returns
     -------
-    ndarray, shape (n, 4), kPa, >= 0
-    """
-    by_channel = np.array(np.asarray(load, float).T, order="C")
-    return np.ascontiguousarray(pressure_by_channel(by_channel, gait_phase, moving, stand_kpa, cfg, rng, rate_hz).T)
+    ndarray, shape (4, n), kPa, >= 0 (``.T`` gives the samples' rows)
 
-
-def pressure_by_channel(
-    load: np.ndarray,
-    gait_phase: np.ndarray,
-    moving: np.ndarray,
-    stand_kpa: np.ndarray,
-    cfg: PressureConfig,
-    rng: np.random.Generator,
-    rate_hz: float,
-) -> np.ndarray:
-    """:func:`pressure_kpa` by channel: ``load`` of shape (4, n) (overwritten: the result is
-    computed in it), returns shape (4, n), kPa.
-
-    The same draws and the same operations on each value, bit for bit: on (n, 4) rows a
-    broadcast or a row selection runs an inner loop of 4 a row, several times slower than
-    on each channel's contiguous row.
+    Each channel is a contiguous row: on (n, 4) rows a broadcast or a row selection runs
+    an inner loop of 4 a row, several times slower. The draws keep their (n, 4) shapes.
     """
     rel = load
     n = rel.shape[1]
