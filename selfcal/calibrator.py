@@ -22,7 +22,10 @@ Why it is consistent by construction (docs/internals.md has the measurements)
   compared with the published model on the cells of that fold that appeared after
   the published model was fitted.
 * **Status is a promise.** Every version carries ``predicted_sphere_rms_mg``, the
-  calibrated-norm RMS error over the whole sphere that its covariance predicts.
+  calibrated-norm RMS error over the whole sphere that its covariance predicts, with
+  what the candidate effects the model lacks could add as far as the cells do not
+  determine them (:meth:`OnlineCalibrator._unmodelled`), and, while the recent cells
+  show an offset jump not yet named, that jump.
   ``calibrated`` means that this is at most ``calibrated_max_sphere_mg`` *and* the
   data determine every base parameter *and* the cells since the last version agree
   with the fit (no offset jump at their start: a bias step not yet named);
@@ -57,6 +60,7 @@ from selfcal.fit import (
     fit_poses,
     implausible,
     predicted_sphere_rms_mg,
+    unmodelled_sphere_rms_mg,
     variance_components,
 )
 from selfcal.models import SECONDARY_EFFECTS, ErrorModel, Normalizer
@@ -74,7 +78,7 @@ from selfcal.selection import (
     wald_significant,
 )
 from selfcal.selection import applicable as selection_applicable
-from selfcal.steps import jump_score, refine_time, scan_step, step_times, whitened_basis
+from selfcal.steps import jump_fit, refine_time, scan_step, step_times, whitened_basis
 
 SECONDS_PER_DAY = 86400.0
 STATE_FORMAT_VERSION = 2
@@ -96,6 +100,9 @@ class SchedulerConfig(BaseModel):
     calibrated_max_sphere_mg: float = Field(
         2.0, gt=0, description="'calibrated' needs a predicted whole-sphere norm RMS error at most this, mg"
     )
+    predict_unmodelled: bool = Field(
+        True, description="the predicted whole-sphere error includes what the [selection] candidates the model "
+                          "lacks could add, at their datasheet size as far as the cells do not determine them")
     recent_check_alpha: float = Field(
         1e-4, ge=0, lt=1, description="'calibrated' also needs the cells since the last version to agree with the "
                                       "fit: their offset is tested for a jump at this level (0: no test)")
@@ -840,27 +847,48 @@ class OnlineCalibrator:
         whitened residuals clipped at ``reject_z``) must be below the chi2 quantile of
         ``recent_check_alpha``. A bias step is seen here within hours, long before a model
         check can name it (it needs 15 % of the cells after it); until then the device is
-        ``provisional``, with the reason in ``status_reason``."""
+        ``provisional``, with the reason in ``status_reason`` and the test in
+        ``recent_jump``, and its ``predicted_sphere_rms_mg`` includes the jump those cells
+        show (its estimate and covariance on the offsets). After a flagged version the
+        cells are counted from where its check counted, so the flag holds until a version
+        passes that test (a model check that names the step fits it away)."""
         s = self.sched_cfg
         if cal["status"] != "calibrated" or self.current is None or s.recent_check_alpha <= 0:
             return
-        t_prev = float(self.current.get("t_data_s", self.current["t_s"]))
+        # a published version this check flagged: count the cells from where its check did,
+        # so that a refit a few hours later (too few cells of its own to test) does not
+        # turn the same disagreement back into 'calibrated'
+        flag = self.current["calibration"].get("recent_jump")
+        t_prev = float(flag["since_t_s"]) if flag else float(self.current.get("t_data_s", self.current["t_s"]))
         recent = self.store.t_first[usable] > t_prev
         n = int(recent.sum())
-        if n < s.recent_check_min_cells or n == len(recent) or len(fit.residuals_g) != len(recent):
+        threshold = float(_chi2_isf(3, s.recent_check_alpha))
+        score = None
+        if not (n < s.recent_check_min_cells or n == len(recent) or len(fit.residuals_g) != len(recent)):
+            jac = fit.model.residual_jac(fit.theta_u, data.mean, data.temp_c, data.t_s)[1] / fit.sigma_g[:, None]
+            q, _ = np.linalg.qr(jac)
+            rw = np.clip(fit.residuals_g / fit.sigma_g, -self.fit_cfg.reject_z, self.fit_cfg.reject_z)
+            try:
+                score, jump, jump_cov = jump_fit(jac[:, 0:3], q, rw, recent)
+            except np.linalg.LinAlgError:
+                score = None
+        if score is None:
+            if flag:  # nothing can clear the flag yet: as published
+                cal["status"] = "provisional"
+                cal["status_reason"] = self.current["calibration"].get("status_reason")
+                cal["recent_jump"] = dict(flag)
             return
-        jac = fit.model.residual_jac(fit.theta_u, data.mean, data.temp_c, data.t_s)[1] / fit.sigma_g[:, None]
-        q, _ = np.linalg.qr(jac)
-        rw = np.clip(fit.residuals_g / fit.sigma_g, -self.fit_cfg.reject_z, self.fit_cfg.reject_z)
-        try:
-            score = jump_score(jac[:, 0:3], q, rw, recent)
-        except np.linalg.LinAlgError:
-            return
-        if score > float(_chi2_isf(3, s.recent_check_alpha)):
+        if score > threshold:
+            # until a model check names the step, the promise covers the jump these cells show
+            cov = np.zeros((self.model.n_params, self.model.n_params))
+            cov[0:3, 0:3] = np.outer(jump, jump) + jump_cov
+            jump_mg = predicted_sphere_rms_mg(self.model, fit.theta_u, cov, cal["t_s"])
+            cal["predicted_sphere_rms_mg"] = float(np.hypot(cal["predicted_sphere_rms_mg"], jump_mg))
             cal["status"] = "provisional"
-            cal["status_reason"] = (f"the {n} cells since the last version disagree with the model (offset jump "
-                                    f"chi2 {score:.1f} on 3 > {float(_chi2_isf(3, s.recent_check_alpha)):.1f}): "
-                                    "a bias step?")
+            cal["status_reason"] = (f"the {n} cells since the last version that agreed disagree with the model (offset jump "
+                                    f"chi2 {score:.1f} on 3 > {threshold:.1f}): a bias step?")
+            cal["recent_jump"] = {"since_t_s": t_prev, "chi2": score, "threshold": threshold,
+                                  "sphere_rms_mg": jump_mg}
 
     def _determined(self, cov_u: np.ndarray) -> np.ndarray:
         """Parameters whose sd is below ``determined_ratio`` of the datasheet's, (p,) bool."""
@@ -878,8 +906,12 @@ class OnlineCalibrator:
         names = self.model.param_names
         cal["determined"] = [n for n, d in zip(names, det) if d]
         cal["undetermined"] = [n for n, d in zip(names, det) if not d]
-        predicted = predicted_sphere_rms_mg(self.model, fit.theta_u, fit.cov_u, t_now)
+        predicted_model = predicted_sphere_rms_mg(self.model, fit.theta_u, fit.cov_u, t_now)
+        unmodelled, effects = self._unmodelled(fit, t_now)
+        predicted = float(np.hypot(predicted_model, unmodelled))
         cal["predicted_sphere_rms_mg"] = predicted
+        cal["predicted_sphere_rms_mg_model"] = predicted_model
+        cal["unmodelled"] = {"effects": effects, "sphere_rms_mg": unmodelled}
         cal["status"] = self._status_of(det, predicted, n_cells)
         cal["n_poses"] = n_cells
         cal["n_windows"] = int(self.store.window_counts().sum())
@@ -890,6 +922,38 @@ class OnlineCalibrator:
         cal["provenance"] = self.store.summary()
         cal["heldout_rms_mg"] = decision.heldout_rms_mg_new
         return cal
+
+    def _unmodelled(self, fit: FitResult, t_now: float) -> tuple[float, list[str]]:
+        """What the candidate effects this model lacks could add to the whole-sphere error
+        (mg, :func:`selfcal.fit.unmodelled_sphere_rms_mg`), and their names.
+
+        The promise of a version (``predicted_sphere_rms_mg``) holds for the sensor as it
+        may be, not only for the model: an effect that no pose of this device can tell
+        apart (a quadratic nonlinearity when every pose is near an axis) stays at its
+        datasheet size in it. A temperature effect counts when every cell has a
+        temperature; ``[scheduler] predict_unmodelled = false`` leaves them all out."""
+        if not self.sched_cfg.predict_unmodelled or fit.cells_u is None:
+            return 0.0, []
+        _, temp, _ = fit.cells_u
+        has_temp = temp is not None and bool(np.all(np.isfinite(temp)))
+        effects = []
+        for e in self.sel_cfg.candidates:
+            if e in self.model.effects or e in effects or (e.startswith("temperature") and not has_temp):
+                continue
+            if self.model.takes(e):  # (seed9 takes none, the cross-axis tempcos need affine9)
+                effects.append(e)
+        if not effects:
+            return 0.0, []
+        t_ref = self.model.t_ref_s
+        if "time_drift_bias" in effects and len(self.store):
+            t_ref = float(self.store.t_first.min())  # as a candidate drift is referred (_candidate)
+        extended = ErrorModel("+".join((self.model.base,) + self.model.effects + tuple(effects)),
+                              self.model.temp_ref_c, t_ref)
+        prior = self._prior_of(extended)
+        value = unmodelled_sphere_rms_mg(fit, extended, self.prior(), prior, t_now, self.fit_cfg)
+        if not np.isfinite(value):  # (a singular information: the prior alone, as if no pose told anything)
+            value = predicted_sphere_rms_mg(extended, extended.extend_theta(fit.theta_u, self.model), prior.cov, t_now)
+        return float(value), effects
 
     def _hold(self, fit: FitResult, cal: dict, t_now: float, final: bool = False) -> str | None:
         """Why a passing candidate is not published (no significant change), or None."""
@@ -910,9 +974,13 @@ class OnlineCalibrator:
                                                            else s.publish_chi2_quantile)))
         if d2 > thr:  # the data say the published model is off
             return None
-        pred_cur = self.current["calibration"].get("predicted_sphere_rms_mg")
+        # more certain: the model's own prediction (the unmodelled effects' share shrinks
+        # only as the cells come to determine them, and is no better estimate of the model)
+        current = self.current["calibration"]
+        pred_cur = current.get("predicted_sphere_rms_mg_model", current.get("predicted_sphere_rms_mg"))
+        pred_new = cal.get("predicted_sphere_rms_mg_model", cal["predicted_sphere_rms_mg"])
         factor = s.publish_final_improve_factor if final else s.publish_improve_factor
-        improved = pred_cur is None or cal["predicted_sphere_rms_mg"] * factor <= float(pred_cur)
+        improved = pred_cur is None or pred_new * factor <= float(pred_cur)
         # more certain, but not significantly different: a calibrated model is replaced only
         # if the new one moves it little over the whole sphere (shift = the published model's
         # sphere error were the new one the truth), so that a calibrated version can never be
@@ -922,7 +990,7 @@ class OnlineCalibrator:
         max_shift = s.publish_final_max_shift_mg if final else s.publish_max_shift_mg
         if improved and (cal["status"] != "calibrated" or shift <= max_shift):
             return None
-        return (f"change chi2 {d2:.1f} <= {thr:.1f}; predicted sphere error {cal['predicted_sphere_rms_mg']:.3f} mg "
+        return (f"change chi2 {d2:.1f} <= {thr:.1f}; predicted sphere error (the model's) {pred_new:.3f} mg "
                 f"vs published {float(pred_cur):.3f} mg, whole-sphere shift {shift:.3f} mg")
 
     def _refuse(self, t_now, reason, message, fit=None, decision=None) -> dict:

@@ -600,6 +600,8 @@ class FitResult:
     initial_value: str
     fit_ms: float
     extra: dict = field(default_factory=dict)
+    #: the poses fitted, normalised units: ``(raw_u (n, 3), temp_c (n,) or None, t_s (n,) or None)``
+    cells_u: tuple | None = None
 
     @property
     def success(self) -> bool:
@@ -924,6 +926,7 @@ def fit_poses(
         initial_value=best_name,
         fit_ms=fit_ms,
         extra={"starts_tried": tried, "weights": weights, "n_rejected": int((~inlier).sum())},
+        cells_u=(raw_u, temp, t_s),
     )
 
 
@@ -1029,6 +1032,67 @@ def predicted_sphere_rms_mg(model: ErrorModel, theta_u: np.ndarray, cov_u: np.nd
     jac = sphere_jacobian(model, theta_u, t_s, n_dirs)
     var = np.einsum("ij,jk,ik->i", jac, np.asarray(cov_u, dtype=float), jac)
     return float(np.sqrt(max(float(np.mean(var)), 0.0)) * 1e3)
+
+
+def unmodelled_sphere_rms_mg(fit: FitResult, extended: ErrorModel, prior_small: Prior, prior_extended: Prior,
+                             t_s: float | None, cfg: FitConfig) -> float:
+    """Whole-sphere calibrated-norm RMS error (mg) that effects ``fit``'s model lacks can
+    add, as far as its poses do not determine them.
+
+    ``extended`` is the fitted model plus those effects (their terms at 0: the fitted
+    model's value), with its prior ``prior_extended`` (``prior_small`` for the shared
+    terms, the datasheet for the others). Both models' posterior covariances come from the
+    fit's weighted Jacobian (its robust weights and inliers, inflated by its reduced
+    chi-square) at the estimate; the result is ``sqrt(max(0, P_ext^2 - P_small^2))`` with
+    ``P`` :func:`predicted_sphere_rms_mg` of each: what the effects' own terms move on the
+    sphere, and what they take from the shared terms, at their datasheet size where no
+    pose tells them apart. A term the poses determine adds little as uncertainty, but
+    what they determine it to be is an error of the model without it: the extended
+    model's estimate, one Gauss-Newton step from the fit (the effect terms' gradient:
+    the fit is stationary in its own), moves the sphere's norms by an RMS that is added
+    in quadrature (its square scaled by ``(W - k) / W``, ``W`` the Wald chi-square of the
+    ``k`` effect terms: the part of it that noise does not explain). An effect no pose
+    can see (a quadratic nonlinearity on an insole's ±1 g axes) adds its whole prior; one
+    the poses pin down adds its size.
+    """
+    if fit.cells_u is None:
+        raise InputError("unmodelled_sphere_rms_mg: the fit does not carry its poses")
+    raw_u, temp, ts = fit.cells_u
+    theta = extended.extend_theta(fit.theta_u, fit.model)
+    _, jac = extended.residual_jac(theta, raw_u, temp, ts)
+    z = fit.residuals_g / fit.sigma_g
+    weights = np.asarray(fit.extra.get("weights", np.ones(len(z))), dtype=float)
+    w = np.where(np.abs(z) <= cfg.reject_z, weights, 0.0)
+    jw = jac / fit.sigma_g[:, None] * np.sqrt(w)[:, None]
+    infl = max(1.0, float(fit.chi2_red)) if np.isfinite(fit.chi2_red) else 1.0
+    small = [extended.param_names.index(n) for n in fit.model.param_names]
+    try:
+        cov_ext = np.linalg.inv(jw.T @ jw / infl + prior_extended.precision())
+        js = jw[:, small]
+        cov_small = np.linalg.inv(js.T @ js / infl + prior_small.precision())
+    except np.linalg.LinAlgError:
+        return float("inf")
+    # predicted_sphere_rms_mg of each, the extended model's sphere Jacobian computed once
+    sphere = sphere_jacobian(extended, theta, t_s)
+    p_ext = float(np.sqrt(max(float(np.mean(np.einsum("ij,jk,ik->i", sphere, cov_ext, sphere))), 0.0)) * 1e3)
+    p_small = predicted_sphere_rms_mg(fit.model, fit.theta_u, 0.5 * (cov_small + cov_small.T), t_s)
+    # the extended estimate: a Gauss-Newton step on the effect terms' gradient (residual sign:
+    # the fit minimises |r|^2, so the step is -cov g with g = J' W r at the fit)
+    rw = z * np.sqrt(w)
+    grad = jw.T @ rw / infl
+    grad[small] = 0.0
+    step = -cov_ext @ grad
+    shift = float(np.sqrt(np.mean(np.square(sphere @ step))) * 1e3)
+    # noise alone makes a step too: its square is scaled by (W - k) / W, W the Wald chi2 of
+    # the k effect terms it gives (an unbiased estimate of their squared size beyond noise,
+    # never below 0): ~0 on an effect-free sensor, ~1 for an effect the poses pin down
+    terms = np.setdiff1d(np.arange(extended.n_params), small)
+    try:
+        wald = float(step[terms] @ np.linalg.solve(cov_ext[np.ix_(terms, terms)], step[terms]))
+    except np.linalg.LinAlgError:
+        wald = np.inf
+    beyond_noise = max(0.0, 1.0 - len(terms) / wald) if wald > 0 else 0.0
+    return float(np.sqrt(max(p_ext**2 - p_small**2, 0.0) + beyond_noise * shift**2))
 
 
 # --------------------------------------------------------------------------- guard

@@ -68,10 +68,20 @@ def jump_score(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, after: np.n
     (n, 3) on those poses with the fitted model's columns ``q`` (n, k, orthonormal)
     projected out, ``z = C' rw`` with ``rw`` (n,) the whitened residuals. Raises
     LinAlgError when ``C'C`` is singular."""
+    return jump_fit(jw_offset, q, rw, after)[0]
+
+
+def jump_fit(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, after: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """:func:`jump_score` with the jump it scores: ``(score, jump (3,), cov (3, 3))``, the
+    least-squares offset jump ``(C'C)^-1 z`` on the poses ``after`` (the offset's units,
+    normalised ~g) and its covariance ``(C'C)^-1``. Raises LinAlgError when ``C'C`` is
+    singular."""
     c = jw_offset * after[:, None]
     c = c - q @ (q.T @ c)
     z = c.T @ rw
-    return float(z @ np.linalg.solve(c.T @ c, z))
+    cc = c.T @ c
+    jump = np.linalg.solve(cc, z)
+    return float(z @ jump), jump, np.linalg.inv(cc)
 
 
 def refine_time(base_fit, u: np.ndarray, temp_c: np.ndarray | None, t_s: np.ndarray, sigma: np.ndarray,

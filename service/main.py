@@ -239,6 +239,8 @@ def calibration_out(device_id: str, dev: DeviceRecord, ver: VersionRecord | None
         n_poses=calib.get("n_poses"),
         residual_rms_mg=calib.get("residual_rms_mg"),
         predicted_sphere_rms_mg=calib.get("predicted_sphere_rms_mg"),
+        predicted_sphere_rms_mg_model=calib.get("predicted_sphere_rms_mg_model"),
+        unmodelled=calib.get("unmodelled"),
         updated_at=_iso(ver.created_at) if ver else None,
         determined=det,
         undetermined=und,

@@ -298,7 +298,13 @@ class CalibrationOut(BaseModel):
     n_poses: int | None = None
     residual_rms_mg: float | None = None
     predicted_sphere_rms_mg: float | None = Field(
-        None, description="calibrated-norm RMS error over the whole sphere predicted by the covariance, mg")
+        None, description="calibrated-norm RMS error over the whole sphere predicted by the covariance, mg, with "
+        "what the effects the model lacks could add (unmodelled) and, while status_reason names one, an offset jump")
+    predicted_sphere_rms_mg_model: float | None = Field(
+        None, description="the same from the model's own covariance alone, mg (versions before 2026-11-27: null)")
+    unmodelled: dict[str, Any] | None = Field(
+        None, description="{effects: candidate effects the model lacks, sphere_rms_mg: what they could add over the "
+        "sphere as far as the poses do not determine them, mg}")
     updated_at: str | None = Field(None, description="ISO 8601 UTC time of this version")
     determined: list[str] = Field(default_factory=list, description="parameters the data determined")
     undetermined: list[str] = Field(default_factory=list, description="parameters held at the prior")
