@@ -101,7 +101,7 @@ class SchedulerConfig(BaseModel):
         2.0, gt=0, description="'calibrated' needs a predicted whole-sphere norm RMS error at most this, mg"
     )
     predict_unmodelled: bool = Field(
-        True, description="the predicted whole-sphere error includes what the [selection] candidates the model "
+        False, description="the predicted whole-sphere error includes what the [selection] candidates the model "
                           "lacks could add, at their datasheet size as far as the cells do not determine them")
     recent_check_alpha: float = Field(
         1e-4, ge=0, lt=1, description="'calibrated' also needs the cells since the last version to agree with the "

@@ -213,10 +213,7 @@ def test_a_simulated_bias_step_is_found_online_and_scored_against_the_sensor_as_
         final = out["bias_steps_final"][-1]
         err = np.subtract(final["size_mg"], out["truth"]["bias_step"]["size_mg"])
         assert np.all(np.abs(err) <= 3 * np.asarray(final["sd_mg"]) + 0.05)
-        # against the offset after the step (1-2 mg from the one before it); seed 3's last version
-        # (day 8.9) is 0.34 mg off, held since: its successors' own uncertainty did not shrink by
-        # publish_improve_factor once the promise took in the unmodelled effects (0.22 mg before)
-        assert out["refits"][-1]["sphere_norm_rms_mg"] < 0.5
+        assert out["refits"][-1]["sphere_norm_rms_mg"] < 0.3  # against the offset after the step
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -231,11 +228,9 @@ def test_the_time_to_calibrated_does_not_depend_on_the_pieces_the_timed_calibrat
     cfg = load_config()
     sim = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(seed), days=10, seed=seed)
     p = sim.poses()
-    # all 10 days: these wearers reach 'calibrated' on day 5.5-6.5 since the promise takes in
-    # the effects the model lacks (within the replay's first 3-day period before)
-    keep = np.all(p.sd_g <= 0.010, axis=1)
+    keep = np.all(p.sd_g <= 0.010, axis=1) & (p.t_s < 3 * 86400.0)  # the replay's first period
     args = (p.mean_g[keep], p.sd_g[keep], p.n[keep], (p.t_s + p.duration_s / 2)[keep], p.temp_c[keep])
     hours = {piece: first_calibrated_h_of(OnlineCalibrator(cfg, "affine9"), *args, piece=piece)
              for piece in (len(args[3]), 97, 256)}
-    assert hours[len(args[3])] is not None and 0 < hours[len(args[3])] < 240
+    assert hours[len(args[3])] is not None and 0 < hours[len(args[3])] < 72
     assert hours[97] == hours[256] == hours[len(args[3])]
