@@ -1029,7 +1029,11 @@ def predicted_sphere_rms_mg(model: ErrorModel, theta_u: np.ndarray, cov_u: np.nd
     gravity directions spread on the sphere, at the reference temperature (normalised
     units, ~g; ``cov_u`` (p, p)).
     """
-    jac = sphere_jacobian(model, theta_u, t_s, n_dirs)
+    return _sphere_rms_mg(sphere_jacobian(model, theta_u, t_s, n_dirs), cov_u)
+
+
+def _sphere_rms_mg(jac: np.ndarray, cov_u: np.ndarray) -> float:
+    """``sqrt(mean_d J_d cov J_d^T)`` in mg, from a sphere Jacobian ``jac`` (n_dirs, p)."""
     var = np.einsum("ij,jk,ik->i", jac, np.asarray(cov_u, dtype=float), jac)
     return float(np.sqrt(max(float(np.mean(var)), 0.0)) * 1e3)
 
@@ -1074,7 +1078,7 @@ def unmodelled_sphere_rms_mg(fit: FitResult, extended: ErrorModel, prior_small: 
         return float("inf")
     # predicted_sphere_rms_mg of each, the extended model's sphere Jacobian computed once
     sphere = sphere_jacobian(extended, theta, t_s)
-    p_ext = float(np.sqrt(max(float(np.mean(np.einsum("ij,jk,ik->i", sphere, cov_ext, sphere))), 0.0)) * 1e3)
+    p_ext = _sphere_rms_mg(sphere, cov_ext)
     p_small = predicted_sphere_rms_mg(fit.model, fit.theta_u, 0.5 * (cov_small + cov_small.T), t_s)
     # the extended estimate: a Gauss-Newton step on the effect terms' gradient (residual sign:
     # the fit minimises |r|^2, so the step is -cov g with g = J' W r at the fit)

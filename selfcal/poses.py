@@ -142,27 +142,24 @@ def _running_sums(start_rows: np.ndarray, rows: np.ndarray, first: np.ndarray) -
     out[1:] = rows[:-1]
     firsts = np.flatnonzero(first)
     out[firsts] = start_rows[firsts]
-    if len(firsts) == 1:  # one group (the usual service batch): one sequential cumsum
-        np.cumsum(out, axis=0, out=out)
+    ends = np.append(firsts[1:], k)
+    longest = int((ends - firsts).max())
+    if len(firsts) <= longest:  # (the usual service batch: one group, one cumsum)
+        for a, b in zip(firsts.tolist(), ends.tolist()):
+            if b - a > 1:
+                np.cumsum(out[a:b], axis=0, out=out[a:b])
     else:
-        ends = np.append(firsts[1:], k)
-        longest = int((ends - firsts).max())
-        if len(firsts) <= longest:
-            for a, b in zip(firsts.tolist(), ends.tolist()):
-                if b - a > 1:
-                    np.cumsum(out[a:b], axis=0, out=out[a:b])
-        else:
-            group = np.cumsum(first) - 1
-            pos = np.arange(k) - firsts[group]
-            run = out[firsts]  # a copy: the start rows
-            by_pos = np.argsort(pos, kind="stable")
-            cuts = np.append(0, np.cumsum(np.bincount(pos)))
-            for j in range(longest):
-                r = by_pos[cuts[j]:cuts[j + 1]]  # the j-th row of each group that has one
-                g = group[r]
-                if j:
-                    run[g] += rows[r - 1]  # one row per group: run[g] = run[g] + the row before
-                out[r] = run[g]
+        group = np.cumsum(first) - 1
+        pos = np.arange(k) - firsts[group]
+        run = out[firsts]  # a copy: the start rows
+        by_pos = np.argsort(pos, kind="stable")
+        cuts = np.append(0, np.cumsum(np.bincount(pos)))
+        for j in range(longest):
+            r = by_pos[cuts[j]:cuts[j + 1]]  # the j-th row of each group that has one
+            g = group[r]
+            if j:
+                run[g] += rows[r - 1]  # one row per group: run[g] = run[g] + the row before
+            out[r] = run[g]
     out += 0.0  # as one window a call: a cell's stored sums never hold -0.0
     return out
 

@@ -68,7 +68,8 @@ def jump_score(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, after: np.n
     (n, 3) on those poses with the fitted model's columns ``q`` (n, k, orthonormal)
     projected out, ``z = C' rw`` with ``rw`` (n,) the whitened residuals. Raises
     LinAlgError when ``C'C`` is singular."""
-    return jump_fit(jw_offset, q, rw, after)[0]
+    cc, z = _jump_system(jw_offset, q, rw, after)
+    return float(z @ np.linalg.solve(cc, z))
 
 
 def jump_fit(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, after: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -76,12 +77,16 @@ def jump_fit(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, after: np.nda
     least-squares offset jump ``(C'C)^-1 z`` on the poses ``after`` (the offset's units,
     normalised ~g) and its covariance ``(C'C)^-1``. Raises LinAlgError when ``C'C`` is
     singular."""
-    c = jw_offset * after[:, None]
-    c = c - q @ (q.T @ c)
-    z = c.T @ rw
-    cc = c.T @ c
+    cc, z = _jump_system(jw_offset, q, rw, after)
     jump = np.linalg.solve(cc, z)
     return float(z @ jump), jump, np.linalg.inv(cc)
+
+
+def _jump_system(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(C'C (3, 3), z = C' rw (3,))`` of :func:`jump_score`."""
+    c = jw_offset * after[:, None]
+    c = c - q @ (q.T @ c)
+    return c.T @ c, c.T @ rw
 
 
 def refine_time(base_fit, u: np.ndarray, temp_c: np.ndarray | None, t_s: np.ndarray, sigma: np.ndarray,
