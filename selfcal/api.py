@@ -44,8 +44,8 @@ class Calibration:
     status : str — ``provisional`` or ``calibrated`` (a promise: see README)
     predicted_sphere_rms_mg : float or None — whole-sphere calibrated-norm RMS error the
         covariance predicts, mg, with what the effects the model lacks could add
-        (``data["unmodelled"]``: their names and share, mg; ``data["predicted_sphere_rms_mg_model"]``:
-        the model's own)
+        (``data["unmodelled"]``: their names and share, mg, as what the poses leave open and
+        what they say the effects are; ``data["predicted_sphere_rms_mg_model"]``: the model's own)
     temp_ref_c, t_ref_s : float — reference temperature (degC) and time origin (s) of effects
     data : dict — the whole contract JSON (every other field, unchanged)
     """

@@ -907,11 +907,13 @@ class OnlineCalibrator:
         cal["determined"] = [n for n, d in zip(names, det) if d]
         cal["undetermined"] = [n for n, d in zip(names, det) if not d]
         predicted_model = predicted_sphere_rms_mg(self.model, fit.theta_u, fit.cov_u, t_now)
-        unmodelled, effects = self._unmodelled(fit, t_now)
+        undetermined, determined, effects = self._unmodelled(fit, t_now)
+        unmodelled = float(np.hypot(undetermined, determined))
         predicted = float(np.hypot(predicted_model, unmodelled))
         cal["predicted_sphere_rms_mg"] = predicted
         cal["predicted_sphere_rms_mg_model"] = predicted_model
-        cal["unmodelled"] = {"effects": effects, "sphere_rms_mg": unmodelled}
+        cal["unmodelled"] = {"effects": effects, "sphere_rms_mg": unmodelled, "undetermined_mg": undetermined,
+                             "determined_mg": determined}
         cal["status"] = self._status_of(det, predicted, n_cells)
         cal["n_poses"] = n_cells
         cal["n_windows"] = int(self.store.window_counts().sum())
@@ -923,17 +925,18 @@ class OnlineCalibrator:
         cal["heldout_rms_mg"] = decision.heldout_rms_mg_new
         return cal
 
-    def _unmodelled(self, fit: FitResult, t_now: float) -> tuple[float, list[str]]:
+    def _unmodelled(self, fit: FitResult, t_now: float) -> tuple[float, float, list[str]]:
         """What the candidate effects this model lacks could add to the whole-sphere error
-        (mg, :func:`selfcal.fit.unmodelled_sphere_rms_mg`), and their names.
+        (mg, :func:`selfcal.fit.unmodelled_sphere_rms_mg`: what the cells leave open, what
+        they say the effects are), and their names.
 
         The promise of a version (``predicted_sphere_rms_mg``) holds for the sensor as it
         may be, not only for the model: an effect that no pose of this device can tell
         apart (a quadratic nonlinearity when every pose is near an axis) stays at its
         datasheet size in it. A temperature effect counts when every cell has a
         temperature; ``[scheduler] predict_unmodelled = false`` leaves them all out."""
-        if not self.sched_cfg.predict_unmodelled or fit.cells_u is None:
-            return 0.0, []
+        if not self.sched_cfg.predict_unmodelled or fit.cells_u is None or fit.poses is None:
+            return 0.0, 0.0, []
         _, temp, _ = fit.cells_u
         has_temp = temp is not None and bool(np.all(np.isfinite(temp)))
         effects = []
@@ -943,17 +946,21 @@ class OnlineCalibrator:
             if self.model.takes(e):  # (seed9 takes none, the cross-axis tempcos need affine9)
                 effects.append(e)
         if not effects:
-            return 0.0, []
+            return 0.0, 0.0, []
         t_ref = self.model.t_ref_s
         if "time_drift_bias" in effects and len(self.store):
             t_ref = float(self.store.t_first.min())  # as a candidate drift is referred (_candidate)
         extended = ErrorModel("+".join((self.model.base,) + self.model.effects + tuple(effects)),
                               self.model.temp_ref_c, t_ref)
         prior = self._prior_of(extended)
-        value = unmodelled_sphere_rms_mg(fit, extended, self.prior(), prior, t_now, self.fit_cfg)
-        if not np.isfinite(value):  # (a singular information: the prior alone, as if no pose told anything)
-            value = predicted_sphere_rms_mg(extended, extended.extend_theta(fit.theta_u, self.model), prior.cov, t_now)
-        return float(value), effects
+        undetermined, determined = unmodelled_sphere_rms_mg(fit, extended, self.prior(), prior, t_now,
+                                                            self._fit_cfg_now or self.fit_cfg)
+        if not (np.isfinite(undetermined) and np.isfinite(determined)):
+            # (a singular information or a failed fit: the prior alone, as if no pose told anything)
+            undetermined = predicted_sphere_rms_mg(extended, extended.extend_theta(fit.theta_u, self.model), prior.cov,
+                                                   t_now)
+            determined = 0.0
+        return float(undetermined), float(determined), effects
 
     def _hold(self, fit: FitResult, cal: dict, t_now: float, final: bool = False) -> str | None:
         """Why a passing candidate is not published (no significant change), or None."""

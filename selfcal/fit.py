@@ -602,6 +602,8 @@ class FitResult:
     extra: dict = field(default_factory=dict)
     #: the poses fitted, normalised units: ``(raw_u (n, 3), temp_c (n,) or None, t_s (n,) or None)``
     cells_u: tuple | None = None
+    #: the poses fitted as given (recording unit), so that another model can be fitted to them
+    poses: PoseData | None = None
 
     @property
     def success(self) -> bool:
@@ -927,6 +929,7 @@ def fit_poses(
         fit_ms=fit_ms,
         extra={"starts_tried": tried, "weights": weights, "n_rejected": int((~inlier).sum())},
         cells_u=(raw_u, temp, t_s),
+        poses=poses,
     )
 
 
@@ -1039,9 +1042,10 @@ def _sphere_rms_mg(jac: np.ndarray, cov_u: np.ndarray) -> float:
 
 
 def unmodelled_sphere_rms_mg(fit: FitResult, extended: ErrorModel, prior_small: Prior, prior_extended: Prior,
-                             t_s: float | None, cfg: FitConfig) -> float:
+                             t_s: float | None, cfg: FitConfig) -> tuple[float, float]:
     """Whole-sphere calibrated-norm RMS error (mg) that effects ``fit``'s model lacks can
-    add, as far as its poses do not determine them.
+    add: ``(undetermined, determined)``, what the poses leave open and what they say the
+    effects are (the total is their sum in quadrature).
 
     ``extended`` is the fitted model plus those effects (their terms at 0: the fitted
     model's value), with its prior ``prior_extended`` (``prior_small`` for the shared
@@ -1051,15 +1055,15 @@ def unmodelled_sphere_rms_mg(fit: FitResult, extended: ErrorModel, prior_small: 
     ``P`` :func:`predicted_sphere_rms_mg` of each: what the effects' own terms move on the
     sphere, and what they take from the shared terms, at their datasheet size where no
     pose tells them apart. A term the poses determine adds little as uncertainty, but
-    what they determine it to be is an error of the model without it: the extended
-    model's estimate, one Gauss-Newton step from the fit (the effect terms' gradient:
-    the fit is stationary in its own), moves the sphere's norms by an RMS that is added
-    in quadrature (its square scaled by ``(W - k) / W``, ``W`` the Wald chi-square of the
-    ``k`` effect terms: the part of it that noise does not explain). An effect no pose
-    can see (a quadratic nonlinearity on an insole's ±1 g axes) adds its whole prior; one
-    the poses pin down adds its size.
+    what they determine it to be is an error of the model without it: the extended model
+    fitted to the fit's own poses (``fit.poses``; robust, from the fit's estimate, with
+    ``cfg``: the fit's noise floor) moves the sphere's calibrated norms by an RMS that is
+    added in quadrature (its square scaled by ``(W - k) / W``, ``W`` the Wald chi-square
+    of the ``k`` effect terms: the part of it that noise does not explain). An effect no
+    pose can see (a quadratic nonlinearity on an insole's ±1 g axes) adds its whole
+    prior; one the poses pin down adds its size. ``(inf, inf)`` when a fit fails.
     """
-    if fit.cells_u is None:
+    if fit.cells_u is None or fit.poses is None:
         raise InputError("unmodelled_sphere_rms_mg: the fit does not carry its poses")
     raw_u, temp, ts = fit.cells_u
     theta = extended.extend_theta(fit.theta_u, fit.model)
@@ -1075,28 +1079,42 @@ def unmodelled_sphere_rms_mg(fit: FitResult, extended: ErrorModel, prior_small: 
         js = jw[:, small]
         cov_small = np.linalg.inv(js.T @ js / infl + prior_small.precision())
     except np.linalg.LinAlgError:
-        return float("inf")
+        return float("inf"), float("inf")
     # predicted_sphere_rms_mg of each, the extended model's sphere Jacobian computed once
     sphere = sphere_jacobian(extended, theta, t_s)
     p_ext = _sphere_rms_mg(sphere, cov_ext)
     p_small = predicted_sphere_rms_mg(fit.model, fit.theta_u, 0.5 * (cov_small + cov_small.T), t_s)
-    # the extended estimate: a Gauss-Newton step on the effect terms' gradient (residual sign:
-    # the fit minimises |r|^2, so the step is -cov g with g = J' W r at the fit)
-    rw = z * np.sqrt(w)
-    grad = jw.T @ rw / infl
-    grad[small] = 0.0
-    step = -cov_ext @ grad
-    shift = float(np.sqrt(np.mean(np.square(sphere @ step))) * 1e3)
-    # noise alone makes a step too: its square is scaled by (W - k) / W, W the Wald chi2 of
-    # the k effect terms it gives (an unbiased estimate of their squared size beyond noise,
-    # never below 0): ~0 on an effect-free sensor, ~1 for an effect the poses pin down
+    # what the poses determine the effects to be: the extended model fitted to the same poses
+    # (robust, from the fit, its noise and prior), its calibrated norms over the sphere
+    # against the fit's. (One Gauss-Newton step from the fit is not enough: the fit is
+    # stationary only to its tolerance and in its own noise model, whose sigma depends on
+    # the parameters; an effect term nearly in the span of the model's, a quadratic
+    # nonlinearity on ±1 g poses, turned that remainder into steps of 100 mg and more.)
     terms = np.setdiff1d(np.arange(extended.n_params), small)
     try:
-        wald = float(step[terms] @ np.linalg.solve(cov_ext[np.ix_(terms, terms)], step[terms]))
+        ext = fit_poses(extended, fit.poses, normalizer=fit.normalizer, prior=prior_extended, theta0_u=theta,
+                        cfg=cfg, robust=True)
+    except (InputError, np.linalg.LinAlgError):
+        ext = None
+    if ext is None or not ext.success:
+        return float("inf"), float("inf")
+    # the sphere's directions as raw readings through the fit's linear part (as
+    # sphere_jacobian takes them), at the reference temperature and t_s
+    dirs = sphere_directions(len(sphere))
+    matrix, offset = extended.linear(theta)
+    raw = dirs @ np.linalg.inv(matrix).T + offset
+    temp_ref = np.full(len(dirs), extended.temp_ref_c)
+    t_eval = np.full(len(dirs), extended.t_ref_s if t_s is None else float(t_s))
+    moved = (extended.residuals(ext.theta_u, raw, temp_ref, t_eval)
+             - extended.residuals(theta, raw, temp_ref, t_eval))
+    shift = float(np.sqrt(np.mean(np.square(moved))) * 1e3)
+    d = ext.theta_u[terms]
+    try:
+        wald = float(d @ np.linalg.solve(ext.cov_u[np.ix_(terms, terms)], d))
     except np.linalg.LinAlgError:
         wald = np.inf
     beyond_noise = max(0.0, 1.0 - len(terms) / wald) if wald > 0 else 0.0
-    return float(np.sqrt(max(p_ext**2 - p_small**2, 0.0) + beyond_noise * shift**2))
+    return float(np.sqrt(max(p_ext**2 - p_small**2, 0.0))), float(np.sqrt(beyond_noise) * shift)
 
 
 # --------------------------------------------------------------------------- guard

@@ -304,7 +304,8 @@ class CalibrationOut(BaseModel):
         None, description="the same from the model's own covariance alone, mg (versions before 2026-11-27: null)")
     unmodelled: dict[str, Any] | None = Field(
         None, description="{effects: candidate effects the model lacks, sphere_rms_mg: what they could add over the "
-        "sphere as far as the poses do not determine them, mg}")
+        "sphere, mg, the sum in quadrature of undetermined_mg (what the poses leave open, at the effects' datasheet "
+        "size) and determined_mg (what the poses say the effects are); older versions lack the two parts}")
     updated_at: str | None = Field(None, description="ISO 8601 UTC time of this version")
     determined: list[str] = Field(default_factory=list, description="parameters the data determined")
     undetermined: list[str] = Field(default_factory=list, description="parameters held at the prior")

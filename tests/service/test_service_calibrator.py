@@ -98,7 +98,7 @@ def test_ingest_to_calibrated_model_matching_truth(real_server):
     assert err < 2.0, f"sphere RMS {err:.3f} mg; calibration {cal}"
     # the promise served: the model's own prediction and what the effects it lacks could add
     un = cal["unmodelled"]  # ([scheduler] predict_unmodelled is off by default: none)
-    assert un == {"effects": [], "sphere_rms_mg": 0.0}
+    assert un == {"effects": [], "sphere_rms_mg": 0.0, "undetermined_mg": 0.0, "determined_mg": 0.0}
     assert cal["predicted_sphere_rms_mg"] == pytest.approx(np.hypot(cal["predicted_sphere_rms_mg_model"],
                                                                     un["sphere_rms_mg"]), rel=1e-9)
     with real_server.client("read") as c:
