@@ -87,7 +87,7 @@ class FitConfig(BaseModel):
     prior_temp_bias_g_per_c: float = Field(1e-3, gt=0, description="prior sd of the offset tempco, g/degC")
     prior_temp_scale_per_c: float = Field(3e-4, gt=0, description="prior sd of the sensitivity tempco, 1/degC")
     prior_drift_g_per_day: float = Field(2e-3, gt=0, description="prior sd of the offset drift, g/day")
-    prior_nonlin_per_g: float = Field(0.01, gt=0, description="prior sd of the quadratic nonlinearity q, 1/g")
+    prior_nonlin_per_g: float = Field(0.003, gt=0, description="prior sd of the quadratic nonlinearity q, 1/g")
     prior_bias_step_g: float = Field(0.02, gt=0, description="prior sd of a bias step (bias_step event), g")
     prior_temp_cross_per_c: float = Field(
         1e-4, gt=0, description="prior sd of the cross-axis tempco tn, 1/degC (100 ppm/degC: 2 mrad over 20 degC)")
