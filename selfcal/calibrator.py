@@ -78,7 +78,7 @@ from selfcal.selection import (
     wald_significant,
 )
 from selfcal.selection import applicable as selection_applicable
-from selfcal.steps import jump_fit, refine_time, scan_step, step_times, whitened_basis
+from selfcal.steps import jump_fit, latest_jump, refine_time, scan_step, step_times, whitened_basis
 
 SECONDS_PER_DAY = 86400.0
 STATE_FORMAT_VERSION = 2
@@ -849,7 +849,8 @@ class OnlineCalibrator:
         check can name it (it needs 15 % of the cells after it); until then the device is
         ``provisional``, with the reason in ``status_reason`` and the test in
         ``recent_jump``, and its ``predicted_sphere_rms_mg`` includes the jump those cells
-        show (its estimate and covariance on the offsets). After a flagged version the
+        show (its estimate and covariance on the offsets, from where among them it fits
+        best: :func:`selfcal.steps.latest_jump`). After a flagged version the
         cells are counted from where its check counted, so the flag holds until a version
         passes that test (a model check that names the step fits it away)."""
         s = self.sched_cfg
@@ -879,7 +880,13 @@ class OnlineCalibrator:
                 cal["recent_jump"] = dict(flag)
             return
         if score > threshold:
-            # until a model check names the step, the promise covers the jump these cells show
+            # until a model check names the step, the promise covers the jump these cells show,
+            # from where among them it fits best (a step after most of them is not averaged
+            # over all of them: the sensor as it is now)
+            try:
+                _, jump, jump_cov = latest_jump(jac[:, 0:3], q, rw, self.store.t_first[usable], recent)
+            except np.linalg.LinAlgError:
+                pass
             cov = np.zeros((self.model.n_params, self.model.n_params))
             cov[0:3, 0:3] = np.outer(jump, jump) + jump_cov
             jump_mg = predicted_sphere_rms_mg(self.model, fit.theta_u, cov, cal["t_s"])

@@ -82,6 +82,36 @@ def jump_fit(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, after: np.nda
     return float(z @ jump), jump, np.linalg.inv(cc)
 
 
+def latest_jump(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, t_s: np.ndarray, recent: np.ndarray,
+                n_times: int = 24, min_after: int = 3) -> tuple[float, np.ndarray, np.ndarray]:
+    """Where among the poses ``recent`` (n,) bool an offset jump explains the residuals
+    best, and its size: ``(tau (s), jump (3,), cov (3, 3))`` as :func:`jump_fit` gives them
+    for the poses of ``recent`` from ``tau`` on (``t_s`` (n,) s; ``tau`` is ``-inf`` when
+    all of them are best). The cuts are every recent pose's time up to ``n_times`` of
+    them, evenly in time order, each leaving at least ``min_after`` poses after it.
+    Estimation only (the best of several cuts is no test): a jump that happened after
+    most of the recent poses is not diluted over all of them. Raises LinAlgError when
+    no cut gives a regular ``C'C``."""
+    ts = np.sort(np.unique(t_s[recent]))
+    cuts = [-np.inf]
+    if len(ts) > min_after:
+        idx = np.unique(np.linspace(1, len(ts) - min_after, min(n_times, len(ts) - min_after)).astype(int))
+        cuts += (0.5 * (ts[idx - 1] + ts[idx])).tolist()
+    best, best_score = None, -np.inf
+    for tau in cuts:  # a few dozen cuts: one (n, 3) product each
+        after = recent & (t_s > tau)
+        try:
+            score = jump_score(jw_offset, q, rw, after)
+        except np.linalg.LinAlgError:
+            continue
+        if score > best_score:
+            best, best_score = tau, score
+    if best is None:
+        raise np.linalg.LinAlgError("no cut of the recent poses gives a regular jump system")
+    _, jump, cov = jump_fit(jw_offset, q, rw, recent & (t_s > best))
+    return float(best), jump, cov
+
+
 def _jump_system(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(C'C (3, 3), z = C' rw (3,))`` of :func:`jump_score`."""
     c = jw_offset * after[:, None]
