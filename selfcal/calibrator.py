@@ -78,7 +78,7 @@ from selfcal.selection import (
     wald_significant,
 )
 from selfcal.selection import applicable as selection_applicable
-from selfcal.steps import jump_fit, latest_jump, refine_time, scan_step, step_times, whitened_basis
+from selfcal.steps import jump_score, latest_jump, refine_time, scan_step, step_times, whitened_basis
 
 SECONDS_PER_DAY = 86400.0
 STATE_FORMAT_VERSION = 2
@@ -870,7 +870,7 @@ class OnlineCalibrator:
             q, _ = np.linalg.qr(jac)
             rw = np.clip(fit.residuals_g / fit.sigma_g, -self.fit_cfg.reject_z, self.fit_cfg.reject_z)
             try:
-                score, jump, jump_cov = jump_fit(jac[:, 0:3], q, rw, recent)
+                score = jump_score(jac[:, 0:3], q, rw, recent)
             except np.linalg.LinAlgError:
                 score = None
         if score is None:
@@ -883,10 +883,7 @@ class OnlineCalibrator:
             # until a model check names the step, the promise covers the jump these cells show,
             # from where among them it fits best (a step after most of them is not averaged
             # over all of them: the sensor as it is now)
-            try:
-                _, jump, jump_cov = latest_jump(jac[:, 0:3], q, rw, self.store.t_first[usable], recent)
-            except np.linalg.LinAlgError:
-                pass
+            _, jump, jump_cov = latest_jump(jac[:, 0:3], q, rw, self.store.t_first[usable], recent)
             cov = np.zeros((self.model.n_params, self.model.n_params))
             cov[0:3, 0:3] = np.outer(jump, jump) + jump_cov
             jump_mg = predicted_sphere_rms_mg(self.model, fit.theta_u, cov, cal["t_s"])

@@ -1016,12 +1016,21 @@ def sphere_jacobian(model: ErrorModel, theta_u: np.ndarray, t_s: float | None = 
     own linear part, at the reference temperature and at time ``t_s`` (default the
     model's time origin).
     """
+    raw, temp, tt = _sphere_readings(model, theta_u, t_s, n_dirs)
+    return model.residual_jac(theta_u, raw, temp, tt)[1]
+
+
+def _sphere_readings(model: ErrorModel, theta_u: np.ndarray, t_s: float | None,
+                     n_dirs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sphere's directions as raw readings: ``(raw (n_dirs, 3), temp_c (n_dirs,), t_s
+    (n_dirs,))``, through the model's linear part at ``theta_u``, at the reference
+    temperature and at ``t_s`` (default the model's time origin)."""
     dirs = sphere_directions(n_dirs)
     matrix, offset = model.linear(np.asarray(theta_u, dtype=float))
     raw = dirs @ np.linalg.inv(matrix).T + offset
     temp = np.full(n_dirs, model.temp_ref_c)
     tt = np.full(n_dirs, model.t_ref_s if t_s is None else float(t_s))
-    return model.residual_jac(theta_u, raw, temp, tt)[1]
+    return raw, temp, tt
 
 
 def predicted_sphere_rms_mg(model: ErrorModel, theta_u: np.ndarray, cov_u: np.ndarray,
@@ -1098,13 +1107,8 @@ def unmodelled_sphere_rms_mg(fit: FitResult, extended: ErrorModel, prior_small: 
         ext = None
     if ext is None or not ext.success:
         return float("inf"), float("inf")
-    # the sphere's directions as raw readings through the fit's linear part (as
-    # sphere_jacobian takes them), at the reference temperature and t_s
-    dirs = sphere_directions(len(sphere))
-    matrix, offset = extended.linear(theta)
-    raw = dirs @ np.linalg.inv(matrix).T + offset
-    temp_ref = np.full(len(dirs), extended.temp_ref_c)
-    t_eval = np.full(len(dirs), extended.t_ref_s if t_s is None else float(t_s))
+    # over the sphere's readings as sphere_jacobian takes them (through the fit's linear part)
+    raw, temp_ref, t_eval = _sphere_readings(extended, theta, t_s, len(sphere))
     moved = (extended.residuals(ext.theta_u, raw, temp_ref, t_eval)
              - extended.residuals(theta, raw, temp_ref, t_eval))
     shift = float(np.sqrt(np.mean(np.square(moved))) * 1e3)

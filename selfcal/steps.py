@@ -92,24 +92,23 @@ def latest_jump(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, t_s: np.nd
     Estimation only (the best of several cuts is no test): a jump that happened after
     most of the recent poses is not diluted over all of them. Raises LinAlgError when
     no cut gives a regular ``C'C``."""
-    ts = np.sort(np.unique(t_s[recent]))
+    ts = np.unique(t_s[recent])
     cuts = [-np.inf]
     if len(ts) > min_after:
         idx = np.unique(np.linspace(1, len(ts) - min_after, min(n_times, len(ts) - min_after)).astype(int))
         cuts += (0.5 * (ts[idx - 1] + ts[idx])).tolist()
-    best, best_score = None, -np.inf
-    for tau in cuts:  # a few dozen cuts: one (n, 3) product each
-        after = recent & (t_s > tau)
+    best = None
+    for tau in cuts:  # a few dozen cuts: one (n, 3) product each, the best one's fit kept
         try:
-            score = jump_score(jw_offset, q, rw, after)
+            score, jump, cov = jump_fit(jw_offset, q, rw, recent & (t_s > tau))
         except np.linalg.LinAlgError:
             continue
-        if score > best_score:
-            best, best_score = tau, score
+        if best is None or score > best[0]:
+            best = (score, tau, jump, cov)
     if best is None:
         raise np.linalg.LinAlgError("no cut of the recent poses gives a regular jump system")
-    _, jump, cov = jump_fit(jw_offset, q, rw, recent & (t_s > best))
-    return float(best), jump, cov
+    _, tau, jump, cov = best
+    return float(tau), jump, cov
 
 
 def _jump_system(jw_offset: np.ndarray, q: np.ndarray, rw: np.ndarray, after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
