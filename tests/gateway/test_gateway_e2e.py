@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+
 import numpy as np
 import pytest
 from gw_fake_service import FakeService, LiveServer
@@ -161,6 +163,13 @@ def test_malformed_packets_are_counted_and_streaming_continues(tmp_path):
                 insole.inject_malformed(3)
                 await gw.wait_for(lambda s: s["totals"]["malformed_packets"] == 3, 10)
                 await gw.wait_for(lambda s: s["totals"]["samples_lost"] == 30, 10)  # next good packet
+                # Inject while a partial packet is held: the gap must still be
+                # exactly 7 samples (it once lost the held ones too, now and then).
+                for _ in range(200):
+                    if insole.unsent_samples:
+                        break
+                    await asyncio.sleep(0.005)
+                assert insole.unsent_samples, "no partial packet was ever held"
                 insole.inject_gap(7)  # lost over the air: a sequence gap
                 n = gw.stats()["totals"]["samples_received"]
                 await gw.wait_for(lambda s: s["totals"]["samples_received"] >= n + 20, 10)

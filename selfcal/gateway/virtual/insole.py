@@ -415,8 +415,17 @@ class VirtualInsole:
         """Send the next ``count`` packets with a corrupted header (their samples are lost)."""
         self._corrupt_next += count
 
+    @property
+    def unsent_samples(self) -> int:
+        """Samples produced and held for a packet not yet full."""
+        return self._pending_n
+
     def inject_gap(self, samples: int) -> None:
-        """Lose the next ``samples`` samples over the air (sequence gap)."""
+        """Lose the next ``samples`` samples over the air (sequence gap).
+
+        The next samples are the unsent ones first (a partial packet held),
+        so exactly ``samples`` are lost whenever this is called.
+        """
         self._skip_next += samples
 
     # -- streaming ---------------------------------------------------------
@@ -448,9 +457,18 @@ class VirtualInsole:
             self._drop_pending()
             return
         if self._skip_next:
+            # The next samples over the air are the unsent ones first: the
+            # pending partial packet, then the new ones; exactly the skipped
+            # count is lost, whatever the pump's timing.
+            if self._pending:
+                first = self._pending_seq
+                acc = np.concatenate([p[0] for p in self._pending] + [acc])
+                prs = np.concatenate([p[1] for p in self._pending] + [prs])
+                temp = np.concatenate([p[2] for p in self._pending] + [temp])
+                n = acc.shape[0]
+                self._drop_pending()
             k = min(self._skip_next, n)
             self._skip_next -= k
-            self._drop_pending()
             acc, prs, temp, first, n = acc[k:], prs[k:], temp[k:], first + k, n - k
         if n == 0:
             return
