@@ -826,7 +826,7 @@ class OnlineCalibrator:
         cur_theta = np.asarray(self.current["theta_u"]) if self.current else self.model.nominal()
         try:
             cv = fit_poses(self.model, data.subset(~held), prior=prior, theta0_u=fit.theta_u,
-                           cfg=self._fit_cfg_now, robust=True)
+                           cfg=self._fit_cfg_now.model_copy(update={"curvature_cov": False}), robust=True)
         except InputError as exc:
             return GuardDecision(False, "insufficient_coverage", f"held-out refit: {exc}")
         ref = data.subset(held)

@@ -184,6 +184,7 @@ def compare(small: ErrorModel, large: ErrorModel, data: PoseData, folds: np.ndar
         return out
     res_s = np.full(len(folds), np.nan)
     res_l = np.full(len(folds), np.nan)
+    fold_cfg = fit_cfg.model_copy(update={"curvature_cov": False})  # their estimates alone are used
     for f in np.unique(folds):
         held = folds == f
         train = data.subset(~held)
@@ -192,11 +193,11 @@ def compare(small: ErrorModel, large: ErrorModel, data: PoseData, folds: np.ndar
             if cv_small is not None and f in cv_small:
                 res_s[held] = cv_small[f]
             else:
-                fs = fit_poses(small, train, prior=prior_small, theta0_u=theta_small, cfg=fit_cfg, robust=True)
+                fs = fit_poses(small, train, prior=prior_small, theta0_u=theta_small, cfg=fold_cfg, robust=True)
                 res_s[held] = _clipped(small, fs.theta_u, ref, clip_g)
                 if cv_small is not None:
                     cv_small[f] = res_s[held]
-            fl = fit_poses(large, train, prior=prior_large, theta0_u=full.theta_u, cfg=fit_cfg, robust=True)
+            fl = fit_poses(large, train, prior=prior_large, theta0_u=full.theta_u, cfg=fold_cfg, robust=True)
             res_l[held] = _clipped(large, fl.theta_u, ref, clip_g)
         except InputError as exc:
             out.notes.append(f"fold {int(f)}: {exc}")
