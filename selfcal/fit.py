@@ -901,13 +901,14 @@ def fit_poses(
     cov_u = 0.5 * (cov_u + cov_u.T)
     if clusters is not None and len(clusters) == len(rw):
         cov_u = _psd_max(cov_u, _cluster_sandwich(jw, rw, np.asarray(clusters), lam_p, post0))
+    jw_infl = jw / np.sqrt(infl)
     if cfg.curvature_cov:
         scale_w = np.sqrt(info_w) / sigma / np.sqrt(infl)
         cov_u = cov_u + curvature_moment(
             lambda th: model.residual_jac(th, raw_u, temp, t_s)[1] * scale_w[:, None], best.x, cov_u,
-            jac0=jw / np.sqrt(infl))
+            jac0=jw_infl)
     determined, shrink, n_dir, und, _ = observability(
-        model, jw / np.sqrt(infl), prior, cfg.determined_ratio, posterior_cov=cov_u)
+        model, jw_infl, prior, cfg.determined_ratio, posterior_cov=cov_u)
     crlb_u = cramer_rao_std(best.jac, sigma * np.sqrt(infl))
     params = normalizer.theta_to_raw(model, best.x)
     cov = normalizer.cov_to_raw(model, cov_u)
@@ -994,7 +995,7 @@ def curvature_moment(jac_w, theta_u: np.ndarray, cov_u: np.ndarray, step: float 
     loose = loose[np.argsort(-sd[loose], kind="stable")]
     j0 = jac_w(theta_u) if jac0 is None else jac0
     g = -cov_u @ j0.T  # (p, n): the linear profile of a residual change
-    inv_var = np.where(evals > 0, 1.0 / np.where(evals > 0, evals, 1.0), 0.0)
+    inv_var = np.divide(1.0, evals, out=np.zeros_like(evals), where=evals > 0)
 
     def moment(k: int) -> np.ndarray:
         """The moment from the ``k`` loosest directions (their pairs with every direction)."""
