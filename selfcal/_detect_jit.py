@@ -141,13 +141,22 @@ def pairwise_sum(a, start, n):
     order ``np.add.reduce`` adds a contiguous axis in: blocks of up to 128 values
     (:func:`_block_sum`); above that the two halves (split at a multiple of 8) summed
     apart and added. The halving is walked with an explicit stack (numba does not cache
-    recursive functions)."""
+    recursive functions): :func:`_pairwise_sum_on` with a stack of its own."""
     if n <= 128:
         return _block_sum(a, start, n)
-    frame_start = np.empty(64, dtype=np.int64)
-    frame_n = np.empty(64, dtype=np.int64)
-    frame_stage = np.empty(64, dtype=np.int64)
-    values = np.empty(64)
+    return _pairwise_sum_on(a, start, n, np.empty((3, 64), dtype=np.int64), np.empty(64))
+
+
+@_jit
+def _pairwise_sum_on(a, start, n, frames, values):
+    """:func:`pairwise_sum` with the caller's stack: ``frames`` (3, 64) int64 and
+    ``values`` (64,) float64, overwritten (a caller that sums many windows allocates
+    them once)."""
+    if n <= 128:
+        return _block_sum(a, start, n)
+    frame_start = frames[0]
+    frame_n = frames[1]
+    frame_stage = frames[2]
     top = 0
     frame_start[0], frame_n[0], frame_stage[0] = start, n, 0
     nv = 0
@@ -189,18 +198,20 @@ def window_stats(x, w, idx):
     mean = np.empty((k, c))
     sd = np.empty((k, c))
     buf = np.empty(w)
+    frames = np.empty((3, 64), dtype=np.int64)  # pairwise_sum's stack, once for every window
+    values = np.empty(64)
     for j in range(k):
         s0 = idx[j]
         for ch in range(c):
             for i in range(w):
                 buf[i] = x[ch, s0 + i]
             # numpy's reduction starts from its identity, 0.0 (so an all -0.0 window sums to 0.0)
-            mu = (0.0 + pairwise_sum(buf, 0, w)) / w
+            mu = (0.0 + _pairwise_sum_on(buf, 0, w, frames, values)) / w
             for i in range(w):
                 d = buf[i] - mu
                 buf[i] = d * d
             mean[j, ch] = mu
-            sd[j, ch] = math.sqrt((0.0 + pairwise_sum(buf, 0, w)) / (w - 1))
+            sd[j, ch] = math.sqrt((0.0 + _pairwise_sum_on(buf, 0, w, frames, values)) / (w - 1))
     return mean, sd
 
 
@@ -381,3 +392,160 @@ def run_edges(flags, run_open):
             b += 1
         prev = f
     return starts[:a].copy(), ends[:b].copy()
+
+
+@_jit
+def _cut(lo, hi, q, start, limit_end, final, size):
+    """:func:`selfcal.detect._piece_ranges` into ``lo``/``hi`` from row ``q`` (global
+    indices; each piece ends where the next starts, the last at ``limit_end`` with
+    ``final``, else at the last full piece's end): ``(rows, next_start)``."""
+    if limit_end < start:
+        return q, start
+    if final:
+        nxt = limit_end + 1
+        s = start
+        while s <= limit_end:
+            lo[q] = s
+            hi[q] = min(s + size, nxt)
+            q += 1
+            s += size
+        return q, nxt
+    n_full = (limit_end - start + 1) // size
+    for i in range(n_full):
+        lo[q] = start + i * size
+        hi[q] = start + (i + 1) * size
+        q += 1
+    return q, start + size * n_full
+
+
+@_jit
+def step_chunk(tb, xb, tn, acc, temp, pres, g0, n_seen, run_open, piece_start, last_end, w, trim, size,
+               clip, norm_tol, max_gap, thresholds, lo_sd, hi_sd, roll_block, unit_roundoff, small_windows,
+               min_duration):
+    """:func:`selfcal.detect.step` for one chunk without a calibrated norm test, in one call:
+    the same windows and the same state, bit for bit.
+
+    ``tb`` (b,) s and ``xb`` (4 + k, b) are the buffered samples by channel (axes in g,
+    ``k`` pressure channels in kPa, temperature in °C); ``tn`` (n,) s, ``acc`` (n, 3) g,
+    ``temp`` (n,) °C and ``pres`` (n, k) kPa the chunk; ``g0``, ``n_seen``, ``run_open``,
+    ``piece_start`` and ``last_end`` the state's (global sample indices); the rest the
+    settings as :func:`window_codes`, :func:`pieces_stats` and the detector take them
+    (``small_windows``: at most this many new windows are each reduced exactly).
+
+    Returns ``(t_keep (b',), x_keep (4 + k, b'), n_seen, buf_start, run_open, piece_start,
+    last_end, mean (p, 3), sd (p, 3), n (p,), t_start (p,), t_end (p,), temp (p,),
+    pressure_sd (p,))``: the new state's buffer and fields, and the still windows that
+    closed in the chunk. A piece with some temperature readings missing gets the mean of
+    its finite ones, as numpy takes it (the contiguous finite values' pairwise sum over
+    their count)."""
+    b = tb.shape[0]
+    n = tn.shape[0]
+    kp = pres.shape[1]
+    c = 4 + kp
+    nb = b + n
+    t = np.empty(nb)
+    x = np.empty((c, nb))
+    for i in range(b):
+        t[i] = tb[i]
+    for ch in range(c):
+        for i in range(b):
+            x[ch, i] = xb[ch, i]
+    for i in range(n):
+        t[b + i] = tn[i]
+        x[0, b + i] = acc[i, 0]
+        x[1, b + i] = acc[i, 1]
+        x[2, b + i] = acc[i, 2]
+        for j in range(kp):
+            x[3 + j, b + i] = pres[i, j]
+        x[c - 1, b + i] = temp[i]
+    n_total = g0 + nb
+
+    # the new test windows, j0 .. n_total - w (global), every one starting in the buffer
+    j0 = max(n_seen - w + 1, 0)
+    l0 = j0 - g0
+    m = nb - l0 - w + 1
+    lo = np.empty(nb + 1, dtype=np.int64)
+    hi = np.empty(nb + 1, dtype=np.int64)
+    q = 0
+    if m > 0:
+        xs = x[: 3 + kp, l0:]
+        codes, n_unsure = window_codes(t[l0:], xs, w, clip, norm_tol, max_gap, thresholds, roll_block,
+                                       unit_roundoff, m <= small_windows)
+        flags = np.empty(m, dtype=np.bool_)
+        for j in range(m):
+            flags[j] = codes[j] == IN
+        if n_unsure:  # each left to its exact statistics, on the samples with non-finite ones zeroed
+            idx = np.empty(n_unsure, dtype=np.int64)
+            u = 0
+            for j in range(m):
+                if codes[j] == UNSURE:
+                    idx[u] = j
+                    u += 1
+            nc = 3 + kp
+            ns = nb - l0
+            x0 = np.empty((nc, ns))
+            for i in range(ns):
+                fin = True
+                for ch in range(nc):
+                    if not math.isfinite(xs[ch, i]):
+                        fin = False
+                for ch in range(nc):
+                    x0[ch, i] = xs[ch, i] if fin else 0.0
+            _, sd = window_stats(x0, w, idx)
+            for r in range(n_unsure):
+                good = True
+                for ch in range(nc):
+                    if not (sd[r, ch] <= hi_sd[ch] and sd[r, ch] >= lo_sd[ch]):
+                        good = False
+                flags[idx[r]] = good
+        # the runs of passing windows, then their pieces (loops over runs, not samples)
+        was_open = run_open
+        starts, ends = run_edges(flags, was_open)
+        n_runs = starts.shape[0] + (1 if was_open else 0)
+        last_window = n_total - w
+        for r in range(n_runs):
+            if was_open and r == 0:  # the run open before the chunk
+                has_a = False
+                a = 0
+            else:
+                has_a = True
+                a = starts[r - 1 if was_open else r] + j0
+            if has_a:
+                piece_start = max(a + trim, last_end + 1)
+                run_open = True
+            if r < ends.shape[0]:
+                seg_end = ends[r] + j0 + w - 1 - trim
+                q, piece_start = _cut(lo, hi, q, piece_start, seg_end, True, size)
+                last_end = max(last_end, seg_end)
+                run_open = False
+            else:
+                q, piece_start = _cut(lo, hi, q, piece_start, last_window + w - 1 - trim, False, size)
+
+    keep = n_total - w + 1
+    if run_open:
+        keep = min(keep, piece_start)
+    keep = min(max(keep, g0), n_total)
+    k = keep - g0
+    t_keep = t[k:].copy()
+    x_keep = x[:, k:].copy()
+
+    for i in range(q):
+        lo[i] -= g0
+        hi[i] -= g0
+    kept, mean, sd_p, n_p, t_start, t_end, temp_p, psd, partial = pieces_stats(t, x, lo[:q], hi[:q],
+                                                                                 min_duration)
+    p = 0
+    for i in range(q):
+        if kept[i]:
+            if partial[p]:  # the mean of the finite readings
+                buf = np.empty(hi[i] - lo[i])
+                cnt = 0
+                for s in range(lo[i], hi[i]):
+                    v = x[c - 1, s]
+                    if math.isfinite(v):
+                        buf[cnt] = v
+                        cnt += 1
+                temp_p[p] = (0.0 + pairwise_sum(buf, 0, cnt)) / cnt
+            p += 1
+    return (t_keep, x_keep, n_total, keep, run_open, piece_start, last_end, mean, sd_p, n_p, t_start, t_end,
+            temp_p, psd)

@@ -280,6 +280,11 @@ class DetectorState:
         Global index of the first sample of the open piece (if ``run_open``).
     last_end : int
         Global index of the last sample of the previous run (-1: none).
+    by_channel : ndarray, shape (4 + k, b), or None
+        The buffered samples by channel (ax, ay, az in g, the ``k`` pressure channels in
+        kPa, temperature in °C), of which ``acc_g``, ``pressure_kpa`` and ``temp_c`` are
+        views, when :func:`step` made them (None: built from them when needed). Not part
+        of :func:`state_to_dict` nor of equality.
     """
 
     n_seen: int = 0
@@ -292,6 +297,7 @@ class DetectorState:
     run_open: bool = False
     piece_start: int = 0
     last_end: int = -1
+    by_channel: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 def _to_list(a: np.ndarray) -> list:
@@ -856,7 +862,9 @@ def _by_channel(acc_g: np.ndarray, pressure_kpa: np.ndarray, temp_c: np.ndarray,
     b = 0 if state is None else state.t_s.shape[0]
     n = acc_g.shape[0]
     x = np.empty((4 + k, b + n))
-    if b:
+    if b and state.by_channel is not None:
+        x[:, :b] = state.by_channel
+    elif b:
         x[:3, :b] = state.acc_g.T
         if k:
             x[3 : 3 + k, :b] = state.pressure_kpa.T
@@ -907,6 +915,9 @@ def step(
             state, part = step(state, t_s[sl], acc_g[sl], temp_c[sl], pressure_kpa[sl], cfg, to_cal)
             parts.append(part)
         return state, StillWindows.concat(parts)
+    kernels = kernels_now()  # SELFCAL_NUMBA read once for every stage of the chunk
+    if to_cal is None and kernels is not None and kernels[5] is not None:
+        return _step_in_one_call(kernels[5], state, t_s, acc_g, temp_c, pressure_kpa, cfg)
     w = cfg.window_samples
     trim = cfg.trim_samples
     g0 = state.buf_start
@@ -918,7 +929,6 @@ def step(
     # New test windows: j0 .. n_total - W (global), all starting inside the buffer.
     j0 = max(state.n_seen - w + 1, 0)
     l0 = j0 - g0
-    kernels = kernels_now()  # SELFCAL_NUMBA read once for every stage of the chunk
     flags = _window_flags(t[l0:], x[: 3 + kp, l0:], cfg, to_cal, kernels)
 
     run_open = state.run_open
@@ -981,8 +991,57 @@ def step(
         run_open=run_open,
         piece_start=piece_start,
         last_end=last_end,
+        by_channel=buf,
     )
     return new_state, _emit(t, x, g0, cut_starts, cut_ends, cfg, kernels)
+
+
+def _plain(a: np.ndarray) -> np.ndarray:
+    """``a`` (float64) as a C-contiguous, writable array (a copy only when it is not one:
+    a column of a table, a read-only buffer), so that the kernel has one signature to
+    compile."""
+    flags = a.flags
+    return a if flags.c_contiguous and flags.writeable else np.array(a, dtype=np.float64, order="C")
+
+
+def _step_in_one_call(kernel, state: DetectorState, t_s: np.ndarray, acc_g: np.ndarray, temp_c: np.ndarray,
+                      pressure_kpa: np.ndarray, cfg: DetectorConfig) -> tuple[DetectorState, StillWindows]:
+    """:func:`step` without a calibrated norm test by the numba kernel ``kernel``
+    (:func:`selfcal._detect_jit.step_chunk`): the same state and windows, in one call."""
+    kp = pressure_kpa.shape[1]
+    b = state.t_s.shape[0]
+    if state.by_channel is not None:
+        xb = state.by_channel
+    elif b:
+        xb = _by_channel(state.acc_g, state.pressure_kpa, state.temp_c)
+    else:
+        xb = np.empty((4 + kp, 0))
+    lo_sd, hi_sd, thresholds = _sd_bounds(cfg.sd_min_g, cfg.sd_max_g, cfg.pressure_sd_max_kpa, kp,
+                                          cfg.window_samples)
+    (t_keep, buf, n_seen, buf_start, run_open, piece_start, last_end,
+     mean, sd, n, t_start, t_end, temp, psd) = kernel(
+        _plain(state.t_s), xb, _plain(t_s), _plain(acc_g), _plain(temp_c), _plain(pressure_kpa),
+        state.buf_start, state.n_seen, bool(state.run_open),
+        state.piece_start, state.last_end, cfg.window_samples, cfg.trim_samples, cfg.max_window_samples,
+        math.nan if cfg.clip_abs_g is None else cfg.clip_abs_g, cfg.norm_tol_raw_g, cfg.max_gap_s, thresholds,
+        lo_sd, hi_sd, _ROLL_BLOCK, _UNIT_ROUNDOFF, _SMALL_WINDOWS, cfg.min_duration_s)
+    new_state = DetectorState(
+        n_seen=n_seen,
+        buf_start=buf_start,
+        t_s=t_keep,
+        acc_g=buf[:3].T,
+        temp_c=buf[-1],
+        pressure_kpa=buf[3 : 3 + kp].T,
+        n_pressure=kp,
+        run_open=run_open,
+        piece_start=piece_start,
+        last_end=last_end,
+        by_channel=buf,
+    )
+    if not n.shape[0]:
+        return new_state, StillWindows()
+    return new_state, StillWindows(mean_g=mean, sd_g=sd, n=n, t_start_s=t_start, t_end_s=t_end, temp_c=temp,
+                                   pressure_sd_kpa=psd)
 
 
 def flush_state(state: DetectorState, cfg: DetectorConfig) -> tuple[DetectorState, StillWindows]:

@@ -15,6 +15,12 @@ Two of the detector's numpy stages become one pass each:
   not its promise: at first use the kernel is compared with numpy on windows of many
   lengths, and not used if any result differs.
 
+With both, a chunk without a calibrated norm test (``to_cal`` None: the calibrator's and
+the service's) goes through :func:`selfcal.detect.step` in one kernel call
+(``step_chunk``: the buffer and the chunk by channel, the per-window tests, the runs, the
+pieces and their table), the same windows and state bit for bit; a chunk of 400 samples
+then costs one call instead of a dozen numpy and kernel calls.
+
 numba is optional (``pip install 'selfcal[fast]'``; ``dev`` installs it for the tests).
 Without it, or with the environment variable ``SELFCAL_NUMBA=0``, the functions here
 return None and the detector runs its numpy code; ``tests/test_detect_numba.py`` checks
@@ -61,14 +67,15 @@ def window_stats_kernel():
 def kernels_now():
     """The kernels as the environment has them now (one read of ``SELFCAL_NUMBA``), for a
     caller that makes several detector calls in a row: ``(sd test, window statistics or
-    None, per-window tests, pieces' table or None, run edges)``, or None (numba missing or
-    switched off). The pieces' table is None when the statistics kernel is (it uses it).
-    Their signatures are those of :mod:`selfcal._detect_jit` (``sd_codes``,
-    ``window_stats``, ``window_codes``, ``pieces_stats``, ``run_edges``)."""
+    None, per-window tests, pieces' table or None, run edges, whole chunk or None)``, or
+    None (numba missing or switched off). The pieces' table and the whole chunk are None
+    when the statistics kernel is (they use it). Their signatures are those of
+    :mod:`selfcal._detect_jit` (``sd_codes``, ``window_stats``, ``window_codes``,
+    ``pieces_stats``, ``run_edges``, ``step_chunk``)."""
     kernels = _kernels() if enabled() else None
     if kernels is None or kernels[1] is not None:
         return kernels
-    return kernels[:3] + (None,) + kernels[4:]
+    return kernels[:3] + (None,) + kernels[4:5] + (None,)
 
 
 def _kernel(i: int):
@@ -82,7 +89,8 @@ _compile_lock = threading.Lock()  # one first-use compilation and check, not one
 
 @functools.lru_cache(maxsize=1)
 def _kernels():
-    """(sd test, window statistics or None, per-window tests, pieces' table, run edges),
+    """(sd test, window statistics or None, per-window tests, pieces' table, run edges,
+    whole chunk),
     compiled at first use; None without numba, with numba's JIT disabled, or when numba
     fails here (no cache location, a compiler error): the detector then runs its numpy
     code, with one warning."""
@@ -115,7 +123,7 @@ def _kernels():
             warnings.warn(f"selfcal: the detector's numba kernels are not used ({exc!r}); "
                           "running its numpy code", RuntimeWarning, stacklevel=2)
             return None
-        return jit.sd_codes, stats, jit.window_codes, jit.pieces_stats, jit.run_edges
+        return jit.sd_codes, stats, jit.window_codes, jit.pieces_stats, jit.run_edges, jit.step_chunk
 
 
 def _compile_as_used(jit, with_stats: bool) -> None:
@@ -138,6 +146,19 @@ def _compile_as_used(jit, with_stats: bool) -> None:
         jit.pieces_stats(t, x, lo, hi, 0.1)
         for xx in (x, x[:, 2:]):
             jit.window_stats(xx, 4, np.array([0, 1], dtype=np.int64))
+        # a chunk as the detector passes it (every array C-contiguous and writable, the
+        # settings' bounds cached, read-only: one signature), without and with pressure
+        for kp in (0, 4):
+            acc = np.zeros((12, 3))
+            acc[:, 2] = 1.0
+            lo_sd, hi_sd = np.zeros(3 + kp), np.ones(3 + kp)
+            th = np.zeros((3 + kp, 4))
+            for ro in (lo_sd, hi_sd, th):
+                ro.setflags(write=False)
+            for tb, tn in ((t[:0].copy(), t), (t[:6].copy(), t[6:] + 0.3)):
+                jit.step_chunk(tb, np.zeros((4 + kp, tb.size)), tn, acc[: tn.size].copy(), np.full(tn.size, np.nan),
+                               np.zeros((tn.size, kp)), 0, tb.size, False, 0, -1, 4, 1, 6, 1.5, 0.15, 0.2, th,
+                               lo_sd, hi_sd, 8192, 2.0**-53, 64, 0.1)
 
 
 def _load():

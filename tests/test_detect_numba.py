@@ -270,7 +270,7 @@ def test_a_numba_that_fails_leaves_the_numpy_code_with_one_warning(monkeypatch):
 
     from selfcal import _detect_jit
     broken_codes = types.SimpleNamespace(**{k: getattr(_detect_jit, k) for k in (
-        "OUT", "IN", "UNSURE", "sd_codes", "window_stats", "pieces_stats", "run_edges")},
+        "OUT", "IN", "UNSURE", "sd_codes", "window_stats", "pieces_stats", "run_edges", "step_chunk")},
         window_codes=fails_to_compile)
     try:
         for load in (no_cache, lambda: other_codes, lambda: broken_codes):
@@ -285,3 +285,61 @@ def test_a_numba_that_fails_leaves_the_numpy_code_with_one_warning(monkeypatch):
     finally:
         monkeypatch.undo()
         detect_numba._kernels.cache_clear()
+
+
+def messy_stream(rng: np.random.Generator, rate_hz: float, n: int, k: int):
+    """Still and moving stretches with everything a chunk can hold: NaN and inf samples,
+    clipped values, gaps and repeated times, temperature missing in part of a piece, in
+    all of it or past the float range, pressure channels (``k``) that move."""
+    t = np.cumsum(np.where(rng.random(n) < 0.003, rng.choice([0.0, 0.5, 3.0], n), 1.0 / rate_hz))
+    block = int(8 * rate_hz)  # 8-s poses, 6-s stretches of motion
+    level = rng.normal(0, 1, (n // block + 1, 3))
+    level /= np.linalg.norm(level, axis=1, keepdims=True)
+    acc = np.repeat(level, block, axis=0)[:n] + 0.003 * rng.standard_normal((n, 3))
+    moving = np.repeat(rng.random(n // (6 * rate_hz) + 1) < 0.3, 6 * rate_hz)[:n]
+    acc[moving] += 0.3 * rng.standard_normal((int(moving.sum()), 3))
+    for bad in (np.nan, np.inf, 9.0):
+        acc[rng.integers(0, n, 3), rng.integers(0, 3, 3)] = bad
+    temp = 25.0 + 0.01 * rng.standard_normal(n)
+    for _ in range(6):
+        a = int(rng.integers(0, n))
+        temp[a : a + int(rng.choice([1, 30, 400]))] = rng.choice([np.nan, np.inf, 1e308])
+    pres = 40.0 + 0.05 * rng.standard_normal((n, k))
+    if k:
+        pres[moving] += 5.0 * rng.standard_normal((int(moving.sum()), k))
+        pres[rng.integers(0, n), rng.integers(0, k)] = np.nan
+    return t, acc, temp, pres
+
+
+@needs_numba
+@pytest.mark.parametrize("seed", [31, 32, 33])
+def test_a_chunk_in_one_call_gives_the_numpy_windows_and_state(monkeypatch, seed):
+    """The whole chunk in one kernel call (``step_chunk``): after every chunk of 1-700
+    samples, the same windows and the same carried state (buffer, indices, open run) as
+    the numpy code, bit for bit; also when the state was saved and restored in between
+    (a restored state has no buffer by channel)."""
+    rng = np.random.default_rng(seed)
+    for rate_hz, k in ((20, 4), (100, 0), (20, 1)):
+        t, acc, temp, pres = messy_stream(rng, rate_hz, 30 * 60 * rate_hz // 5, k)
+        cfg = detect.DetectorConfig(rate_hz=rate_hz, min_duration_s=float(rng.choice([0.5, 2.0])))
+        cuts = np.unique(np.concatenate(([0, len(t)], np.cumsum(rng.integers(1, 700, len(t) // 150)))))
+        cuts = cuts[cuts <= len(t)]
+        dets = {on: detect.StaticDetector(cfg) for on in ("1", "0")}
+        n_windows = 0
+        for i, (lo, hi) in enumerate(zip(cuts[:-1], cuts[1:])):
+            out = {}
+            for on, det in dets.items():
+                monkeypatch.setenv("SELFCAL_NUMBA", on)
+                with np.errstate(all="ignore"):
+                    out[on] = det.feed(t[lo:hi], acc[lo:hi], temp[lo:hi], pres[lo:hi] if k else None)
+            for name in FIELDS:
+                assert same_bits(getattr(out["1"], name), getattr(out["0"], name)), (name, lo)
+            n_windows += len(out["0"])
+            fast, slow = dets["1"].state_, dets["0"].state_
+            for name in ("n_seen", "buf_start", "n_pressure", "run_open", "piece_start", "last_end"):
+                assert getattr(fast, name) == getattr(slow, name), (name, lo)
+            for name in ("t_s", "acc_g", "temp_c", "pressure_kpa"):
+                assert same_bits(getattr(fast, name), getattr(slow, name)), (name, lo)
+            if i % 7 == 3:  # saved and restored: the next chunk builds its buffer from the fields
+                dets["1"] = detect.StaticDetector.from_state(cfg, dets["1"].state_dict())
+        assert n_windows > 5
