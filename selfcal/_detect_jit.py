@@ -216,6 +216,22 @@ def window_stats(x, w, idx):
 
 
 @_jit
+def finite_or_zero(x):
+    """A copy of ``x`` (c, n) with every channel of a sample that has a non-finite value
+    set to 0.0, as the numpy code's ``np.where(np.isfinite(x).all(axis=0), x, 0.0)``."""
+    c, n = x.shape
+    x0 = np.empty((c, n))
+    for i in range(n):
+        fin = True
+        for ch in range(c):
+            if not math.isfinite(x[ch, i]):
+                fin = False
+        for ch in range(c):
+            x0[ch, i] = x[ch, i] if fin else 0.0
+    return x0
+
+
+@_jit
 def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_roundoff, exact):
     """Every condition of :func:`selfcal.detect._window_flags` but the calibrated norm, per
     ``w``-sample window of ``x`` (c, n) at times ``t`` (n,): ``(codes, unsure)``, OUT, IN or
@@ -281,17 +297,7 @@ def window_codes(t, x, w, clip, norm_tol, max_gap, thresholds, roll_block, unit_
                 codes[j] = UNSURE
                 unsure += 1
         return codes, unsure
-    if all_finite:
-        x0 = x
-    else:
-        x0 = np.empty_like(x)
-        for i in range(n):
-            fin = True
-            for ch in range(c):
-                if not math.isfinite(x[ch, i]):
-                    fin = False
-            for ch in range(c):
-                x0[ch, i] = x[ch, i] if fin else 0.0
+    x0 = x if all_finite else finite_or_zero(x)
     sd = sd_codes(x0, w, thresholds, roll_block, unit_roundoff)
     unsure = 0
     for j in range(m):
@@ -481,20 +487,10 @@ def step_chunk(tb, xb, tn, acc, temp, pres, g0, n_seen, run_open, piece_start, l
                 if codes[j] == UNSURE:
                     idx[u] = j
                     u += 1
-            nc = 3 + kp
-            ns = nb - l0
-            x0 = np.empty((nc, ns))
-            for i in range(ns):
-                fin = True
-                for ch in range(nc):
-                    if not math.isfinite(xs[ch, i]):
-                        fin = False
-                for ch in range(nc):
-                    x0[ch, i] = xs[ch, i] if fin else 0.0
-            _, sd = window_stats(x0, w, idx)
+            _, sd = window_stats(finite_or_zero(xs), w, idx)
             for r in range(n_unsure):
                 good = True
-                for ch in range(nc):
+                for ch in range(3 + kp):
                     if not (sd[r, ch] <= hi_sd[ch] and sd[r, ch] >= lo_sd[ch]):
                         good = False
                 flags[idx[r]] = good

@@ -977,23 +977,29 @@ def step(
         keep = min(keep, piece_start)
     keep = min(max(keep, g0), n_total)
     k = keep - g0
-    # the kept samples in one copy, by channel; the state's fields are views of it, so
-    # the next chunk's _by_channel copies contiguous rows back (values unchanged)
-    buf = x[:, k:].copy()
-    new_state = DetectorState(
-        n_seen=n_total,
-        buf_start=keep,
-        t_s=t[k:].copy(),
+    # the kept samples in one copy, by channel; the state's fields are views of it, and the
+    # next chunk copies it back in one block (values unchanged)
+    new_state = _carried(n_total, keep, t[k:].copy(), x[:, k:].copy(), run_open, piece_start, last_end)
+    return new_state, _emit(t, x, g0, cut_starts, cut_ends, cfg, kernels)
+
+
+def _carried(n_seen: int, buf_start: int, t_s: np.ndarray, buf: np.ndarray, run_open: bool, piece_start: int,
+             last_end: int) -> DetectorState:
+    """The state after a chunk, its sample fields views of ``buf`` (4 + k, b) by channel
+    (g, kPa, °C) at times ``t_s`` (b,) s."""
+    return DetectorState(
+        n_seen=n_seen,
+        buf_start=buf_start,
+        t_s=t_s,
         acc_g=buf[:3].T,
         temp_c=buf[-1],
-        pressure_kpa=buf[3 : 3 + kp].T,
-        n_pressure=kp,
+        pressure_kpa=buf[3:-1].T,
+        n_pressure=buf.shape[0] - 4,
         run_open=run_open,
         piece_start=piece_start,
         last_end=last_end,
         by_channel=buf,
     )
-    return new_state, _emit(t, x, g0, cut_starts, cut_ends, cfg, kernels)
 
 
 def _plain(a: np.ndarray) -> np.ndarray:
@@ -1025,19 +1031,7 @@ def _step_in_one_call(kernel, state: DetectorState, t_s: np.ndarray, acc_g: np.n
         state.piece_start, state.last_end, cfg.window_samples, cfg.trim_samples, cfg.max_window_samples,
         math.nan if cfg.clip_abs_g is None else cfg.clip_abs_g, cfg.norm_tol_raw_g, cfg.max_gap_s, thresholds,
         lo_sd, hi_sd, _ROLL_BLOCK, _UNIT_ROUNDOFF, _SMALL_WINDOWS, cfg.min_duration_s)
-    new_state = DetectorState(
-        n_seen=n_seen,
-        buf_start=buf_start,
-        t_s=t_keep,
-        acc_g=buf[:3].T,
-        temp_c=buf[-1],
-        pressure_kpa=buf[3 : 3 + kp].T,
-        n_pressure=kp,
-        run_open=run_open,
-        piece_start=piece_start,
-        last_end=last_end,
-        by_channel=buf,
-    )
+    new_state = _carried(n_seen, buf_start, t_keep, buf, run_open, piece_start, last_end)
     if not n.shape[0]:
         return new_state, StillWindows()
     return new_state, StillWindows(mean_g=mean, sd_g=sd, n=n, t_start_s=t_start, t_end_s=t_end, temp_c=temp,
