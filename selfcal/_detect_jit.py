@@ -314,13 +314,13 @@ def pieces_stats(t, x, lo, hi, min_duration):
     temperature (°C), at times ``t`` (b,), in one call.
 
     Returns ``(keep (q,) bool, mean (p, 3), sd (p, 3), n (p,), t_start (p,), t_end (p,),
-    temp (p,), pressure_sd (p,), partial (p,) bool)`` for the ``p`` pieces kept (at least
-    2 samples and ``t_end - t_start >= min_duration``), each piece's statistics by
-    :func:`window_stats` (numpy's, bit for bit). ``temp`` is the piece's temperature mean
-    when every reading is finite (a sum past the float range stays as numpy leaves it) and
-    NaN when none is; ``partial`` marks the pieces with some readings missing, whose mean
-    of the finite readings the caller takes (numpy's sum of a subset). ``pressure_sd`` is
-    the largest channel sd (NaN if one is NaN, as ``np.max``; NaN without pressure)."""
+    temp (p,), pressure_sd (p,))`` for the ``p`` pieces kept (at least 2 samples and
+    ``t_end - t_start >= min_duration``), each piece's statistics by :func:`window_stats`
+    (numpy's, bit for bit). ``temp`` is the piece's temperature mean when every reading is
+    finite (a sum past the float range stays as numpy leaves it), the mean of its finite
+    readings when some are missing (as numpy takes it: their contiguous pairwise sum over
+    their count), NaN when none is finite. ``pressure_sd`` is the largest channel sd (NaN
+    if one is NaN, as ``np.max``; NaN without pressure)."""
     q0 = lo.shape[0]
     c = x.shape[0]
     keep = np.zeros(q0, dtype=np.bool_)
@@ -336,7 +336,6 @@ def pieces_stats(t, x, lo, hi, min_duration):
     t_end = np.empty(p)
     temp = np.full(p, np.nan)
     psd = np.full(p, np.nan)
-    partial = np.zeros(p, dtype=np.bool_)
     one = np.empty(1, dtype=np.int64)
     j = 0
     for i in range(q0):
@@ -355,14 +354,17 @@ def pieces_stats(t, x, lo, hi, min_duration):
         if math.isfinite(tm):
             temp[j] = tm
         else:
-            finite = 0
+            finite = np.empty(length)  # the finite readings, contiguous
+            cnt = 0
             for k in range(lo[i], hi[i]):
-                if math.isfinite(x[c - 1, k]):
-                    finite += 1
-            if finite == length:
+                v = x[c - 1, k]
+                if math.isfinite(v):
+                    finite[cnt] = v
+                    cnt += 1
+            if cnt == length:
                 temp[j] = tm  # every reading finite, the sum past the float range: numpy's mean too
-            elif finite > 0:
-                partial[j] = True
+            elif cnt > 0:
+                temp[j] = (0.0 + pairwise_sum(finite, 0, cnt)) / cnt
         if c > 4:
             top = s[0, 3]
             for ch in range(4, c - 1):
@@ -373,7 +375,7 @@ def pieces_stats(t, x, lo, hi, min_duration):
                     top = v
             psd[j] = top
         j += 1
-    return keep, mean, sd, n, t_start, t_end, temp, psd, partial
+    return keep, mean, sd, n, t_start, t_end, temp, psd
 
 
 @_jit
@@ -441,9 +443,7 @@ def step_chunk(tb, xb, tn, acc, temp, pres, g0, n_seen, run_open, piece_start, l
     Returns ``(t_keep (b',), x_keep (4 + k, b'), n_seen, buf_start, run_open, piece_start,
     last_end, mean (p, 3), sd (p, 3), n (p,), t_start (p,), t_end (p,), temp (p,),
     pressure_sd (p,))``: the new state's buffer and fields, and the still windows that
-    closed in the chunk. A piece with some temperature readings missing gets the mean of
-    its finite ones, as numpy takes it (the contiguous finite values' pairwise sum over
-    their count)."""
+    closed in the chunk (their statistics by :func:`pieces_stats`)."""
     b = tb.shape[0]
     n = tn.shape[0]
     kp = pres.shape[1]
@@ -528,20 +528,6 @@ def step_chunk(tb, xb, tn, acc, temp, pres, g0, n_seen, run_open, piece_start, l
     for i in range(q):
         lo[i] -= g0
         hi[i] -= g0
-    kept, mean, sd_p, n_p, t_start, t_end, temp_p, psd, partial = pieces_stats(t, x, lo[:q], hi[:q],
-                                                                                 min_duration)
-    p = 0
-    for i in range(q):
-        if kept[i]:
-            if partial[p]:  # the mean of the finite readings
-                buf = np.empty(hi[i] - lo[i])
-                cnt = 0
-                for s in range(lo[i], hi[i]):
-                    v = x[c - 1, s]
-                    if math.isfinite(v):
-                        buf[cnt] = v
-                        cnt += 1
-                temp_p[p] = (0.0 + pairwise_sum(buf, 0, cnt)) / cnt
-            p += 1
+    _, mean, sd_p, n_p, t_start, t_end, temp_p, psd = pieces_stats(t, x, lo[:q], hi[:q], min_duration)
     return (t_keep, x_keep, n_total, keep, run_open, piece_start, last_end, mean, sd_p, n_p, t_start, t_end,
             temp_p, psd)

@@ -779,14 +779,9 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     """
     kernel = _accel(accelerate, 3)
     if kernel is not None and lo.size:  # the same table in one call (selfcal.detect_numba)
-        keep, mean, sd, n, t_start, t_end, temp_mean, psd, partial = kernel(
+        _, mean, sd, n, t_start, t_end, temp_mean, psd = kernel(
             np.asarray(t, dtype=np.float64), np.asarray(x, dtype=np.float64), np.asarray(lo, dtype=np.int64),
             np.asarray(hi, dtype=np.int64), cfg.min_duration_s)
-        if partial.any():  # temperature readings missing in part of a piece: the finite ones' mean
-            lo_kept = lo[keep]
-            for j in np.flatnonzero(partial).tolist():
-                tt = x[-1, lo_kept[j] : lo_kept[j] + n[j]]
-                temp_mean[j] = float(np.ascontiguousarray(tt[np.isfinite(tt)]).mean())
         return StillWindows(mean_g=mean, sd_g=sd, n=n, t_start_s=t_start, t_end_s=t_end, temp_c=temp_mean,
                             pressure_sd_kpa=psd)
     keep = hi - lo >= 2

@@ -146,19 +146,15 @@ def _compile_as_used(jit, with_stats: bool) -> None:
         jit.pieces_stats(t, x, lo, hi, 0.1)
         for xx in (x, x[:, 2:]):
             jit.window_stats(xx, 4, np.array([0, 1], dtype=np.int64))
-        # a chunk as the detector passes it (every array C-contiguous and writable, the
-        # settings' bounds cached, read-only: one signature), without and with pressure
-        for kp in (0, 4):
-            acc = np.zeros((12, 3))
-            acc[:, 2] = 1.0
-            lo_sd, hi_sd = np.zeros(3 + kp), np.ones(3 + kp)
-            th = np.zeros((3 + kp, 4))
-            for ro in (lo_sd, hi_sd, th):
-                ro.setflags(write=False)
-            for tb, tn in ((t[:0].copy(), t), (t[:6].copy(), t[6:] + 0.3)):
-                jit.step_chunk(tb, np.zeros((4 + kp, tb.size)), tn, acc[: tn.size].copy(), np.full(tn.size, np.nan),
-                               np.zeros((tn.size, kp)), 0, tb.size, False, 0, -1, 4, 1, 6, 1.5, 0.15, 0.2, th,
-                               lo_sd, hi_sd, 8192, 2.0**-53, 64, 0.1)
+        # a chunk as the detector passes it: every array C-contiguous and writable, the
+        # settings' bounds cached and read-only (its one signature, with or without pressure)
+        lo_sd, hi_sd, th = np.zeros(3), np.ones(3), np.zeros((3, 4))
+        for ro in (lo_sd, hi_sd, th):
+            ro.setflags(write=False)
+        acc = np.zeros((6, 3))
+        acc[:, 2] = 1.0
+        jit.step_chunk(t[:6].copy(), x[:, :6].copy(), t[6:] + 0.3, acc, np.full(6, np.nan), np.zeros((6, 0)),
+                       0, 6, False, 0, -1, 4, 1, 6, 1.5, 0.15, 0.2, th, lo_sd, hi_sd, 8192, 2.0**-53, 64, 0.1)
 
 
 def _load():
