@@ -326,7 +326,7 @@ def main() -> int:
         args.t0_s = args.t0_spread_s = 0.0
     with PgCluster(max_connections=200) as pg, tempfile.TemporaryDirectory(prefix="selfcal-scale-") as tmp:
         configs = [] if args.no_sqlite else [("sqlite, 1 process (embedded refits)", f"{tmp}/scale.db", 1)]
-        for n in [int(x) for x in args.procs.split(",")]:
+        for n in [int(x) for x in args.procs.split(",") if x.strip()]:  # "" : SQLite alone
             nice = f" (nice {args.worker_nice})" if args.worker_nice and args.refit_workers else ""
             nice += " (idle)" if args.worker_idle and args.refit_workers else ""
             nice += f" (cycles >= {args.min_cycle_s:g} s apart)" if args.min_cycle_s and args.refit_workers else ""
