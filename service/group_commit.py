@@ -31,6 +31,19 @@ log = logging.getLogger("selfcal.service.store")
 _STOP = object()
 
 
+def _resolve(fut: Future, ok: bool, value: Any) -> None:
+    """Deliver a write's outcome; never raises (the writer thread must outlive any caller)."""
+    if fut.done():
+        return
+    try:
+        if ok:
+            fut.set_result(value)
+        else:
+            fut.set_exception(value)
+    except Exception:  # noqa: BLE001 - InvalidStateError: resolved meanwhile
+        log.debug("a write's outcome was not delivered (its future was already resolved)")
+
+
 class GroupCommitStore(Storage):
     """Base of the stores: the group-committing writer thread and its bookkeeping."""
 
@@ -114,6 +127,13 @@ class GroupCommitStore(Storage):
             if item is _STOP:
                 break
             ops, stop = self._take_group(item)
+            # a write whose caller gave up while it was queued (a request's timeout cancels
+            # the future) is dropped unwritten; the others can no longer be cancelled, so
+            # their results are always delivered (a cancelled future refuses set_result:
+            # that exception had killed this thread, and every later write hung)
+            ops = [(fn, fut) for fn, fut in ops if fut.set_running_or_notify_cancel()]
+            if not ops:
+                continue
             results: list[tuple[Future, bool, Any]] = []
             try:
                 problem = self.identity_problem()
@@ -174,8 +194,7 @@ class GroupCommitStore(Storage):
                     self._close_writer(conn)
                 conn = None  # connect again with the next group (lazily: no wait during an outage)
                 for _, fut in ops:
-                    if not fut.done():
-                        fut.set_exception(reason)
+                    _resolve(fut, False, reason)
                 continue
             if self.last_write_error is not None:
                 log.warning("storage writable again")
@@ -183,10 +202,7 @@ class GroupCommitStore(Storage):
             self.commits += 1
             self.ops_committed += len(ops)
             for fut, ok, value in results:  # only now: the commit is durable
-                if ok:
-                    fut.set_result(value)
-                else:
-                    fut.set_exception(value)
+                _resolve(fut, ok, value)
         if conn is not None:
             self._close_writer(conn)
 

@@ -470,3 +470,52 @@ def test_a_restored_calibrator_states_what_a_new_one_does_when_the_service_has_n
         factory = CalibratorFactory("selfcal.calibrator:OnlineCalibrator", config=config)
         live = factory.create()
         assert factory.restore(live.to_json()).to_json() == live.to_json()
+
+
+# ----------------------------------------------------------------- group commit
+def test_a_write_whose_caller_gave_up_is_dropped_and_the_writer_lives_on(tmp_path):
+    """A request's timeout cancels its queued write's future (asyncio.wait_for over
+    wrap_future). The writer must drop that write unwritten and keep serving: resolving a
+    cancelled future raises, and that had killed the writer thread (every later write hung)."""
+    import asyncio
+    import hashlib
+    import threading
+
+    from selfcal_service.sqlite_store import SQLiteStore
+
+    store = SQLiteStore(str(tmp_path / "g.db"))
+    store.open()
+    try:
+        gate, entered = threading.Event(), threading.Event()
+
+        def blocker(conn):
+            entered.set()
+            assert gate.wait(10)
+            return "first"
+
+        first = store._submit(blocker)
+        assert entered.wait(10)  # the writer is inside the first group
+        b = _batch(seed=5)
+        b.seq = 0
+        payload = b.to_bytes()
+
+        async def give_up():  # as the ingest route does, with a timeout that expires
+            with pytest.raises(asyncio.TimeoutError):
+                await asyncio.wait_for(asyncio.wrap_future(store.submit_batch(
+                    "d", 0, b.n, payload, 1.0, hashlib.sha256(payload).digest(), 100)), timeout=0.05)
+
+        asyncio.run(give_up())
+        ran = []
+        gone = store._submit(lambda conn: ran.append(1))
+        assert gone.cancel()  # queued, not taken yet: cancellable
+        gate.set()
+        assert first.result(10) == "first"
+        later = store._submit(lambda conn: "alive")
+        assert later.result(10) == "alive"  # the writer outlived the cancelled futures
+        assert store.writer_alive()
+        assert ran == []  # the cancelled write never ran
+        assert store.pending_batches("d", 10) == []  # nor did the timed-out batch: a resend stores it once
+        again = store.submit_batch("d", 0, b.n, payload, 1.0, hashlib.sha256(payload).digest(), 100).result(10)
+        assert not again.duplicate and [p.seq for p in store.pending_batches("d", 10)] == [0]
+    finally:
+        store.close()
