@@ -66,6 +66,9 @@ SCHEMA_VERSION = 6
 # acquire_leases looks at this many more of the longest-waiting devices than it takes, and
 # takes the worker's own (last fed by it) among them first
 AFFINITY_SLACK = 32
+#: A session idle inside a transaction this long (s) is ended by the server (its client froze
+#: or vanished mid-group): its row locks go, instead of stalling every write to those devices.
+IDLE_IN_TRANSACTION_S = 10.0
 _SCHEMA_LOCK = 815_372_001  # pg_advisory_lock key while the schema is created or migrated
 
 _REFUSALS_SCHEMA = [
@@ -458,11 +461,17 @@ class PostgresStore(GroupCommitStore):
         """psycopg's ``connect`` arguments for a reader or the writer (sync or async)."""
         # keepalives and tcp_user_timeout: a partitioned database host fails a call in
         # seconds, not after the kernel's 15-minute TCP timeout; statement_timeout bounds
-        # any one statement (a lock wait included)
+        # any one statement (a lock wait included). The server's side: a session whose
+        # client froze or vanished inside a transaction (a worker host partitioned mid-
+        # group) is ended after IDLE_IN_TRANSACTION_S, and a dead peer is found by the
+        # server's own keepalives; else it kept its device-row locks for the kernel's ~2 h,
+        # and every write to those devices waited out statement_timeout and failed
+        options = (f"-c statement_timeout={int(1000 * self.statement_timeout_s)}"
+                   f" -c idle_in_transaction_session_timeout={int(1000 * IDLE_IN_TRANSACTION_S)}"
+                   " -c tcp_keepalives_idle=5 -c tcp_keepalives_interval=2 -c tcp_keepalives_count=3")
         return dict(conninfo=self.url, autocommit=True, connect_timeout=int(max(1, self.connect_timeout_s)),
                     keepalives=1, keepalives_idle=5, keepalives_interval=2, keepalives_count=3,
-                    tcp_user_timeout=int(1000 * max(1.0, self.connect_timeout_s)),
-                    options=f"-c statement_timeout={int(1000 * self.statement_timeout_s)}")
+                    tcp_user_timeout=int(1000 * max(1.0, self.connect_timeout_s)), options=options)
 
     def _connect(self) -> Any:
         import psycopg

@@ -80,6 +80,36 @@ def test_a_cycle_that_lost_its_lease_or_its_starting_state_writes_nothing(two_st
     assert len(a.history("dev-2")) == 1
 
 
+def test_a_session_frozen_inside_a_transaction_loses_its_locks_to_the_server(tmp_path, monkeypatch):
+    """A worker host that freezes (or is partitioned) mid-group keeps its transaction open
+    with the device rows locked. The server ends such a session after
+    IDLE_IN_TRANSACTION_S, so another process's write of those devices waits that long,
+    not its whole statement_timeout (after which it failed: a 503 for every batch of them)."""
+    import psycopg
+
+    from selfcal_service import pg_store
+
+    monkeypatch.setattr(pg_store, "IDLE_IN_TRANSACTION_S", 1.0)
+    url = backend_db(tmp_path / "pg-frozen.db")
+    a, b = PostgresStore(url), PostgresStore(url, statement_timeout_s=8.0)
+    a.open()
+    b.open()
+    try:
+        _ingest(a, "dev-f", 0).result(timeout=30)
+        frozen = psycopg.connect(**a._connect_kwargs())
+        assert frozen.execute("SHOW idle_in_transaction_session_timeout").fetchone()[0] == "1s"
+        frozen.execute("BEGIN")
+        frozen.execute("SELECT 1 FROM devices WHERE device_id = 'dev-f' FOR UPDATE")  # then nothing more
+        assert not _ingest(b, "dev-f", 1).result(timeout=30).duplicate  # stored once the server ended it
+        assert b.backlog() == 2
+        with pytest.raises(psycopg.Error, match="idle-in-transaction"):  # the frozen client finds its session gone
+            frozen.execute("SELECT 1")
+        frozen.close()
+    finally:
+        a.close()
+        b.close()
+
+
 def test_two_workers_lease_disjoint_devices_and_an_expired_lease_moves_on(two_stores):
     a, b = two_stores
     for i in range(6):
