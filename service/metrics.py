@@ -70,6 +70,9 @@ class Metrics:
         "selfcal_clock_resets_total": ("counter", "device clocks that went backwards between batches"),
         "selfcal_worker_queue_depth": ("gauge", "devices waiting for their worker"),
         "selfcal_worker_leases": ("gauge", "devices leased by this process's refit worker (PostgreSQL)"),
+        "selfcal_worker_lease_repairs_total": ("counter", "leases a worker's view disagreed with the database on, "
+                                                          "by kind (orphan: held in the database only, released; "
+                                                          "lost: another worker's now, forgotten)"),
         "selfcal_worker_conflicts_total": ("counter", "worker cycles dropped: the device changed elsewhere or the lease was lost"),
         "selfcal_backlog_batches": ("gauge", "stored batches not yet fed nor rejected (all devices)"),
         "selfcal_backlog_oldest_age_seconds": ("gauge", "age of the oldest stored batch not yet fed nor rejected"),

@@ -42,6 +42,7 @@ from selfcal_service.storage import (
     DeviceRecord,
     FleetRecord,
     IngestResult,
+    LeaseLost,
     PendingBatch,
     Progress,
     SeqConflict,
@@ -741,7 +742,7 @@ class PostgresStore(GroupCommitStore):
                 raise ConflictError(f"device {p.device_id}: changed under the worker "
                                     f"(processed_seq {processed}, state_rev {rev})")
             if p.lease_owner is not None and (owner != p.lease_owner or not live):
-                raise ConflictError(f"device {p.device_id}: lease of {p.lease_owner} lost (owner {owner})")
+                raise LeaseLost(f"device {p.device_id}: lease of {p.lease_owner} lost (owner {owner})")
             numbers = []
             for v in p.new_versions:
                 (number,) = conn.execute(
@@ -812,8 +813,8 @@ class PostgresStore(GroupCommitStore):
                  [dumps_json(v.provenance) for v in vs])).fetchone()
             if error is not None:  # undone on the server; its neighbours in the group stand
                 raise RuntimeError(f"the database refused the cycle of device {p.device_id!r}: {error}")
-            if conflict is not None:
-                raise ConflictError(conflict)
+            if conflict is not None:  # (the function's two kinds: "changed under the worker", "lease of ... lost")
+                raise (LeaseLost if " lease of " in conflict and " lost (owner " in conflict else ConflictError)(conflict)
             return [int(n) for n in numbers]
 
         op.one_statement = True  # type: ignore[attr-defined]  # a server-side savepoint; refusals raise in Python
@@ -873,6 +874,10 @@ class PostgresStore(GroupCommitStore):
         self._read(f"INSERT INTO workers(owner, seen_at, until) VALUES (%(me)s, {_NOW}, {_NOW} + %(ttl)s) "
                    "ON CONFLICT (owner) DO UPDATE SET seen_at = excluded.seen_at, until = excluded.until RETURNING 1",
                    {"me": owner, "ttl": ttl_s})
+
+    def held_leases(self, owner: str) -> list[str]:
+        """Every device whose lease row names ``owner`` (what the database says it holds)."""
+        return [r[0] for r in self._read("SELECT device_id FROM devices WHERE lease_owner = %s", (owner,))]
 
     def leased_with_pending(self, owner: str) -> list[str]:
         """Devices ``owner`` holds that have pending batches (ingested by other processes)."""

@@ -43,6 +43,11 @@ class ConflictError(Exception):
     """The device changed under a worker (another writer advanced processed_seq)."""
 
 
+class LeaseLost(ConflictError):
+    """The worker's lease of the device lapsed or went to another worker (shared database):
+    the device is no longer this worker's to feed."""
+
+
 class SeqConflict(Exception):
     """A resent seq whose content differs from the stored batch (HTTP 409)."""
 

@@ -34,6 +34,7 @@ from selfcal_service.schemas import Batch, decode_binary
 from selfcal_service.storage import (
     ConflictError,
     DeviceRecord,
+    LeaseLost,
     NewVersion,
     PendingBatch,
     Progress,
@@ -352,6 +353,8 @@ class RefitWorker:
                 self.conflicts += 1
                 self.metrics.inc("selfcal_worker_conflicts_total")  # (_process dropped its calibrator)
                 more = False
+                if isinstance(exc, LeaseLost):  # not ours any more: no restore at its next batch
+                    self._drop_lease(device_id)
             except StorageUnavailable as exc:  # a storage fault: no traceback, wait it out
                 if backoff_s == 0.5:
                     log.warning("refits paused: %s", exc)
@@ -876,11 +879,13 @@ class RefitWorker:
                     now = time.monotonic()
                     if now - last_renew >= lease.ttl_s / 3:
                         # the heartbeat renews every lease this worker holds
+                        before = set(self._leased)
                         workers, leased, waiting = self.store.heartbeat(lease.owner, lease.ttl_s)  # type: ignore[attr-defined]
                         self._share = max(1, math.ceil((leased + waiting) / max(1, workers)))
                         self._waiting = waiting
                         self._workers = workers
                         last_renew = now
+                        self._reconcile_leases(before, set(self.store.held_leases(lease.owner)))  # type: ignore[attr-defined]
                     room = min(lease.max_devices, self._share) - len(self._leased)
                     if room <= 0:
                         room = 0 if self._leased else 1  # (a worker holding nothing always takes one)
@@ -906,6 +911,37 @@ class RefitWorker:
             finally:
                 with self._lease_cond:
                     self._leasing = False  # what it leased is queued by now
+
+    def _drop_lease(self, device_id: str) -> None:
+        """Forget a lease the database no longer gives this worker (it lapsed, or went to
+        another worker): not fed here again unless leased anew."""
+        self._leased.discard(device_id)
+        self._idle.pop(device_id, None)
+
+    def _reconcile_leases(self, before: set[str], held: set[str]) -> None:
+        """Make the leases this worker believes it holds those the database says it holds.
+
+        ``before``: ``_leased`` just before the database was read; ``held``: the devices whose
+        lease row names this worker. Only this (the lease) thread takes leases, so a device
+        in ``held`` but in neither ``before`` nor ``_leased`` was leased by a statement whose
+        reply was lost (a connection that broke after the commit, or a read retried on a new
+        connection): renewed by every heartbeat, it was held for ever and fed by no one. It
+        is released (this worker may take it again by affinity). A device in ``before`` and
+        still in ``_leased`` but not in ``held`` was taken by another worker after this one's
+        lease lapsed: forgotten (a refit thread may be releasing it right now; forgetting it
+        twice is harmless)."""
+        owner = self.lease.owner  # type: ignore[union-attr]
+        for device_id in held - before - self._leased:
+            log.warning("device %s: leased in the database but unknown to this worker; released", device_id)
+            self.metrics.inc("selfcal_worker_lease_repairs_total", kind="orphan")
+            try:
+                self.store.release_lease(owner, device_id)  # type: ignore[attr-defined]
+            except Exception as exc:  # noqa: BLE001 - the next heartbeat tries again
+                log.info("device %s: orphan lease not released (%s)", device_id, exc)
+        for device_id in (before & self._leased) - held:
+            log.info("device %s: lease lost to another worker; forgotten", device_id)
+            self.metrics.inc("selfcal_worker_lease_repairs_total", kind="lost")
+            self._drop_lease(device_id)
 
     def _keep_cap(self) -> int:
         """Devices this worker may keep leased between batches: its share of the fleet's

@@ -206,6 +206,73 @@ def test_a_worker_keeps_an_idle_devices_lease_and_writes_its_checkpoint_when_it_
         db.close()
 
 
+@pytest.mark.skipif(__import__("service_helpers").backend() != "postgresql",
+                    reason="PostgreSQL scale-out (runs in the SELFCAL_TEST_BACKEND=postgresql pass)")
+def test_a_worker_repairs_leases_it_does_not_know_of_or_has_lost(tmp_path, stream):
+    """Orphan: a lease committed in the database whose reply the worker never got (a
+    connection that broke after the commit) was renewed by every heartbeat and fed by no
+    one. Lost: a lease that lapsed and went to another worker stayed in the worker's set,
+    and each batch then cost a restore and a refused commit. The heartbeat now reconciles
+    both with the database."""
+    import threading
+
+    from selfcal_service.metrics import Metrics
+    from selfcal_service.pg_store import PostgresStore
+    from selfcal_service.settings import load_settings
+    from selfcal_service.worker import CalibratorFactory, LeaseConfig, RefitWorker
+
+    cfg, batches = stream
+    url = backend_db(tmp_path / "repair.db")
+    api, db = PostgresStore(url), PostgresStore(url)
+    api.open()
+    db.open()
+    factory = CalibratorFactory(load_settings({}, environ={}).calibrator,
+                                config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
+    worker = RefitWorker(db, factory, Metrics(), lease=LeaseConfig(owner="w1", ttl_s=1.5, poll_s=0.05, idle_s=30.0))
+
+    def wait_for(pred, what, timeout_s=30.0):
+        t_end = time.monotonic() + timeout_s
+        while not pred():
+            assert time.monotonic() < t_end, what
+            time.sleep(0.02)
+
+    try:
+        _ingest(api, batches[:1])  # stored; the worker is not told (another API process)
+        assert api.acquire_leases("w1", 1.5, 10) == ["ins"]  # committed, its reply "lost"
+        worker.start()
+        wait_for(lambda: api.load_device("ins", with_state=False).processed_seq == 0, "the orphan fed")
+        assert worker.metrics.get("selfcal_worker_lease_repairs_total", kind="orphan") == 1
+        assert "ins" in worker._leased  # released by the repair, then leased again by affinity
+        # lost: the lease moves to another worker behind this one's back
+        api._read("UPDATE devices SET lease_owner = 'w2', lease_expires = 1e12 WHERE device_id = 'ins' "
+                  "RETURNING 1")
+        wait_for(lambda: "ins" not in worker._leased, "the lost lease forgotten")
+        assert worker.metrics.get("selfcal_worker_lease_repairs_total", kind="lost") == 1
+        _ingest(api, batches[1:2])
+        worker.notify("ins")  # w2's device: not leased, not fed, no restore
+        time.sleep(1.0)
+        assert api.load_device("ins", with_state=False).processed_seq == 0 and worker.replays == 0
+        # a refit thread whose commit is refused for a lost lease (LeaseLost: the one-round-trip
+        # commit tells it apart from a changed device) forgets the device at once (a worker
+        # without a lease thread here: no heartbeat repairs it first)
+        w3 = RefitWorker(db, factory, Metrics(), lease=LeaseConfig(owner="w3", ttl_s=1.5, poll_s=0.05))
+        w3._leased.add("ins")
+        w3._enqueue("ins")
+        shard = w3._shards[0]
+        refit = threading.Thread(target=w3._loop, args=(shard,), daemon=True)
+        refit.start()
+        wait_for(lambda: w3.conflicts == 1 and w3.busy == 0, "w3's cycle refused")
+        w3._stop.set()
+        with shard.cond:
+            shard.cond.notify_all()
+        refit.join(10)
+        assert "ins" not in w3._leased and "ins" not in w3._idle and shard.pending == {}
+    finally:
+        worker.stop()
+        api.close()
+        db.close()
+
+
 def test_a_bounded_cache_writes_the_calibrators_it_drops_and_restores_them_the_same(tmp_path, stream):
     """With ``cache_max_devices`` = 1 and two devices fed in turn, each cycle drops the
     other device's calibrator (written first, as it is ahead of its checkpoint) and
