@@ -29,6 +29,7 @@ from starlette.responses import PlainTextResponse, Response
 
 from selfcal.errors import InputError
 from selfcal_service.auth import AuthError, KeyRing
+from selfcal_service.gc_policy import Refreezer
 from selfcal_service.logs import device_id as device_id_var
 from selfcal_service.logs import device_of_path, new_request_id
 from selfcal_service.logs import request_id as request_id_var
@@ -425,12 +426,17 @@ DeviceId = Annotated[
 ]
 
 
-def tune_gc(settings: Settings) -> None:
+def tune_gc(settings: Settings) -> "Refreezer | None":
     """The cyclic garbage collector, set for a long-running server process: one full
     collection, then ``gc.freeze()`` (``settings.gc_freeze``), so that the objects that
     exist now (modules, the app, the store) are never scanned again; and the young
     generation's threshold (``settings.gc_gen0_threshold``). A full collection of an
-    unfrozen API process took up to 186 ms under load, and every request waited."""
+    unfrozen API process took up to 186 ms under load, and every request waited.
+
+    With ``gc_unfreeze_every_s`` > 0, what survives each later full collection is frozen
+    too (the calibrators the embedded service builds per device), and all is unfrozen
+    once per period (:class:`selfcal_service.gc_policy.Refreezer`, returned installed:
+    call its ``remove()`` at shutdown); else None."""
     import gc
 
     _, t1, t2 = gc.get_threshold()
@@ -438,6 +444,9 @@ def tune_gc(settings: Settings) -> None:
     if settings.gc_freeze:
         gc.collect()
         gc.freeze()
+        if settings.gc_unfreeze_every_s > 0:
+            return Refreezer(settings.gc_unfreeze_every_s).install()
+    return None
 
 
 def create_app(
@@ -486,12 +495,14 @@ def create_app(
             metrics.gauge("selfcal_db_write_queue_depth", st.queue_depth)
             metrics.counter_from("selfcal_db_commits_total", lambda: st.commits)
             metrics.counter_from("selfcal_db_writes_total", lambda: st.ops_committed)
-        tune_gc(settings)
+        refreezer = tune_gc(settings)
         metrics.track_gc()
         try:
             yield
         finally:
             metrics.untrack_gc()
+            if refreezer is not None:
+                refreezer.remove()
             if settings.gc_freeze:
                 import gc
 

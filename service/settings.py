@@ -125,6 +125,13 @@ class Settings(BaseModel):
         True, description="gc.freeze() once the app is up: what was imported and built at start leaves the cyclic "
                           "collector's full scans (each stalls every request; docs/service.md)"
     )
+    gc_unfreeze_every_s: float = Field(
+        600.0, ge=0, le=86400,
+        description="with gc_freeze: what survives each full collection is frozen too (the next one scans only "
+                    "what arrived since), and everything is unfrozen once per this many seconds so that cyclic "
+                    "garbage among frozen objects is freed (one full scan per period; service/gc_policy.py); "
+                    "0: only what exists at start is frozen"
+    )
     gc_gen0_threshold: int = Field(
         700, ge=100, le=1_000_000, description="gc.set_threshold's first value: allocations between young collections"
     )

@@ -519,3 +519,63 @@ def test_a_write_whose_caller_gave_up_is_dropped_and_the_writer_lives_on(tmp_pat
         assert not again.duplicate and [p.seq for p in store.pending_batches("d", 10)] == [0]
     finally:
         store.close()
+
+
+def test_the_refreezer_freezes_each_full_collections_survivors_and_frees_frozen_cycles_each_period():
+    """The embedded service's calibrators arrive after start: each full collection scanned
+    them all (~90 ms at 10 000 insoles). Survivors of a full collection are frozen; once a
+    period everything is unfrozen, so cyclic garbage that died frozen is freed."""
+    import gc
+    import weakref
+
+    from selfcal_service.gc_policy import Refreezer
+
+    class Node:
+        pass
+
+    now = [0.0]
+    gc.collect()
+    r = Refreezer(600.0, clock=lambda: now[0]).install()
+    try:
+        a, b = Node(), Node()
+        a.other, b.other = b, a  # a reference cycle: only the collector can free it
+        alive = weakref.ref(a)
+        gc.collect()
+        assert r.freezes == 1 and gc.get_freeze_count() > 0 and gc.is_tracked(a)
+        assert a not in gc.get_objects()  # frozen: no collection scans it
+        del a, b
+        now[0] = 599.0
+        gc.collect()
+        assert alive() is not None and r.unfreezes == 0  # died frozen: not freed yet
+        now[0] = 600.0
+        gc.collect()  # at its end everything is unfrozen ...
+        assert r.unfreezes == 1 and gc.get_freeze_count() == 0
+        gc.collect()  # ... and the next full collection frees the cycle, then freezes the rest
+        assert alive() is None and r.freezes == 3 and gc.get_freeze_count() > 0
+        gc.collect(1)  # a young collection changes nothing
+        assert r.freezes == 3
+    finally:
+        r.remove()
+        gc.unfreeze()
+    assert r._on_gc not in gc.callbacks
+    with pytest.raises(ValueError, match="unfreeze_every_s"):
+        Refreezer(0.0)
+
+
+def test_tune_gc_installs_the_refreezer_only_with_a_period_and_the_start_freeze():
+    import gc
+
+    from selfcal_service.main import tune_gc
+
+    old = gc.get_threshold()
+    try:
+        r = tune_gc(load_settings({"gc_unfreeze_every_s": 5.0}, environ={}))
+        assert r is not None and r._on_gc in gc.callbacks and r.unfreeze_every_s == 5.0
+        r.remove()
+        gc.unfreeze()
+        assert tune_gc(load_settings({"gc_unfreeze_every_s": 0}, environ={})) is None
+        gc.unfreeze()
+        assert tune_gc(load_settings({"gc_freeze": False}, environ={})) is None
+    finally:
+        gc.unfreeze()
+        gc.set_threshold(*old)
