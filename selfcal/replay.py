@@ -57,7 +57,8 @@ from selfcal.sim import SimConfig, Simulation, canonical_qr, sensor_mean
 from selfcal.soak import find_soaks
 
 SECONDS_PER_DAY = 86400.0
-BASE_NAMES = ErrorModel("affine9").param_names
+_AFFINE9 = ErrorModel("affine9")
+BASE_NAMES = _AFFINE9.param_names
 
 
 #: Tilt is scored on at most this many still windows, evenly spaced in time (a month
@@ -84,7 +85,8 @@ class TruthMetrics:
 
     def __call__(self, model: ErrorModel, theta_u: np.ndarray, t_s: float) -> dict[str, float]:
         theta_u = np.asarray(theta_u, dtype=float)
-        base = theta_u[: len(BASE_NAMES)] if model.base == "affine9" else model.from_linear(*model.linear(theta_u))
+        # another base (seed9, scale6) as the affine9 parameters of the same linear map
+        base = theta_u[: len(BASE_NAMES)] if model.base == "affine9" else _AFFINE9.from_linear(*model.linear(theta_u))
         truth_params = self.truth_params
         if np.isfinite(self.sensor.step_at_s) and t_s >= self.sensor.step_at_s:  # the sensor as it now is
             truth_params = np.array([self.sensor.params_at(t_s)[n] for n in BASE_NAMES])
@@ -136,6 +138,44 @@ def first_calibrated_h_of(cal: OnlineCalibrator, mean_g, sd_g, n, t_s, temp_c, p
     return None
 
 
+def period_ends(days: float, refit_every_days: float) -> np.ndarray:
+    """The replay's period ends (days): every ``refit_every_days`` (1 day with 0, the
+    calibrator's own scheduler), and ``days`` itself when the last period is shorter (its
+    poses are fed and refitted too)."""
+    step = refit_every_days if refit_every_days > 0 else 1.0
+    ends = np.arange(step, days + 1e-9, step)
+    if len(ends) == 0 or ends[-1] < days - 1e-9:
+        ends = np.r_[ends, days]
+    return ends
+
+
+def _config_digest(config: dict | None) -> str:
+    """SHA-256 of a configuration (its JSON, keys sorted): tells a checkpoint's run apart."""
+    import hashlib
+
+    return hashlib.sha256(json.dumps(config or {}, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def read_checkpoint(path: Path, run_key: dict[str, Any]) -> dict[str, Any]:
+    """A replay checkpoint written by a run with the inputs ``run_key``; InputError naming the
+    file and what differs otherwise (a checkpoint of another run is never resumed, nor
+    silently overwritten)."""
+    try:
+        state = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"--checkpoint {path}: not a readable replay checkpoint ({type(exc).__name__}: {exc})") from None
+    keys = ("run", "done_until", "refits", "first_calibrated_h", "calibrator", "online")
+    if not isinstance(state, dict) or not all(k in state for k in keys) or not isinstance(state["run"], dict):
+        raise InputError(f"--checkpoint {path}: not a replay checkpoint of this selfcal version (it lacks "
+                         f"{', '.join(k for k in keys if not isinstance(state, dict) or k not in state) or 'run'}); "
+                         "delete it or choose another file")
+    differ = [f"{k} {state['run'].get(k)!r} there, {v!r} now" for k, v in run_key.items() if state["run"].get(k) != v]
+    if differ:
+        raise InputError(f"--checkpoint {path}: written by another run ({'; '.join(differ)}); resume it with the "
+                         "same options, or choose another file")
+    return state
+
+
 def _atomic_write(path: Path, text: str) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(text)
@@ -181,6 +221,11 @@ def replay(
     """
     if level not in ("poses", "samples"):
         raise ValueError(f"level: expected 'poses' or 'samples', got {level!r}")
+    if not (np.isfinite(days) and days > 0):
+        raise InputError(f"days = {days!r}: must be a finite number > 0")
+    if not (np.isfinite(refit_every_days) and refit_every_days >= 0):
+        raise InputError(f"refit_every_days = {refit_every_days!r}: must be a finite number >= 0 (0: the "
+                         "calibrator's own scheduler)")
     config = config or {}
     sim_cfg = SimConfig.from_section(section(config, "sim"))
     if effects:
@@ -215,22 +260,24 @@ def replay(
                    status="uncalibrated", published=None, reason=None)
     refits: list[dict] = []
     first_calibrated_h = None
-    boundaries = (np.arange(refit_every_days, days + 1e-9, refit_every_days) if refit_every_days > 0
-                  else np.arange(1.0, days + 1e-9, 1.0))
+    boundaries = period_ends(days, refit_every_days)
     done_until = 0.0
     ckpt = Path(checkpoint) if checkpoint else None
+    run_key = {"seed": seed, "days": days, "refit_every_days": refit_every_days, "level": level, "model": model,
+               "random_init": random_init, "soaks": soaks, "effects": sorted(effects),
+               "config_sha256": _config_digest(config)}
     if ckpt and ckpt.exists():
-        state = json.loads(ckpt.read_text())
-        if state.get("seed") == seed and state.get("days") == days and state.get("effects") == list(effects):
-            cal = OnlineCalibrator.from_json(state["calibrator"])
-            online = OnlineCalibrator.from_json(state["online"])
-            refits, done_until, first_calibrated_h = state["refits"], state["done_until"], state["first_calibrated_h"]
+        state = read_checkpoint(ckpt, run_key)
+        cal = OnlineCalibrator.from_json(state["calibrator"])
+        online = OnlineCalibrator.from_json(state["online"])
+        refits, done_until, first_calibrated_h = state["refits"], state["done_until"], state["first_calibrated_h"]
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(boundaries), desc=f"replay seed {seed}", unit="period", file=sys.stderr)
-        bar.update(int(np.sum(boundaries <= done_until + 1e-9)))
+        # the periods a resumed run had done count as done, not as this run's speed (ETA)
+        bar = tqdm(total=len(boundaries), initial=int(np.sum(boundaries <= done_until + 1e-9)),
+                   desc=f"replay seed {seed}", unit="period", file=sys.stderr)
     t0_wall = time.perf_counter()
     base_name = ErrorModel(model).base
     last_cal = cal.calibration()
@@ -240,10 +287,11 @@ def replay(
     fed_until_s = done_until * SECONDS_PER_DAY
     shared_detector = cal.det_cfg == online.det_cfg
     pending = None
+    prev = 0.0
     for b in boundaries:
+        lo, hi, prev = prev * SECONDS_PER_DAY, b * SECONDS_PER_DAY, b
         if b <= done_until + 1e-9:
             continue
-        lo, hi = (b - (refit_every_days or 1.0)) * SECONDS_PER_DAY, b * SECONDS_PER_DAY
         sel = (poses.t_s >= lo) & (poses.t_s < hi)
         if level == "poses":
             args = (poses.mean_g[sel], poses.sd_g[sel], poses.n[sel], poses.t_s[sel] + poses.duration_s[sel] / 2,
@@ -258,11 +306,15 @@ def replay(
                 pending = None
                 if chunk is None:
                     break
-                if chunk.t_s[0] < fed_until_s:
+                if len(chunk) == 0 or chunk.t_s[-1] < fed_until_s:
                     continue
+                if chunk.t_s[0] < fed_until_s:  # resumed: its rows before the periods done were fed
+                    chunk = chunk.split(fed_until_s)[1]
                 if chunk.t_s[0] >= hi:
                     pending = chunk
                     break
+                if chunk.t_s[-1] >= hi:  # a chunk holds whole segments: its rows from hi on are the next period's
+                    chunk, pending = chunk.split(hi)
                 if first_calibrated_h is None and shared_detector:
                     # one detection for both calibrators (the same [detector] settings): the
                     # as-shipped one gets the protocol calibrator's windows
@@ -276,6 +328,8 @@ def replay(
                         online.feed_samples(chunk.t_s, chunk.acc_g, chunk.temp_c, chunk.pressure_kpa)
                 if first_calibrated_h is None and online.status == "calibrated":
                     first_calibrated_h = float(chunk.t_s[-1]) / 3600.0
+                if pending is not None:  # the period ends inside this chunk
+                    break
         cal.t_last_s = hi
         if refit_every_days > 0:
             events = [cal.refit()]
@@ -296,7 +350,7 @@ def replay(
         done_until = b
         if ckpt:
             _atomic_write(ckpt, json.dumps({
-                "seed": seed, "days": days, "effects": list(effects), "done_until": done_until,
+                "run": run_key, "seed": seed, "days": days, "effects": list(effects), "done_until": done_until,
                 "refits": refits, "first_calibrated_h": first_calibrated_h,
                 "calibrator": cal.to_json(), "online": online.to_json()}))
         if bar:
@@ -407,10 +461,26 @@ def _replay_one(kwargs: dict) -> dict:
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1):
-        return replay(**kwargs)
+        try:
+            return replay(**kwargs)
+        except Exception as exc:  # the fleet's error names the device that failed
+            exc.add_note(f"(the replay of the device with seed {kwargs.get('seed')})")
+            raise
 
 
 ENGINES = ("processes", "dask", "ray")
+
+
+def check_engine(engine: str) -> None:
+    """InputError unless ``engine`` is one of :data:`ENGINES` and its package is installed."""
+    if engine not in ENGINES:
+        raise InputError(f"--engine {engine!r}: choose one of {', '.join(ENGINES)}")
+    import importlib.util
+
+    if engine == "dask" and importlib.util.find_spec("distributed") is None:
+        raise InputError("--engine dask needs dask's distributed scheduler (pip install 'selfcal[fleet]')")
+    if engine == "ray" and importlib.util.find_spec("ray") is None:
+        raise InputError("--engine ray needs ray (pip install ray); it is not part of selfcal's extras")
 
 
 def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: bool = False, *,
@@ -424,8 +494,9 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
     the results are identical (only ``wall_s`` differs). Returns the results in seed
     order; the progress bar (stderr) counts devices and shows the ETA.
     """
-    if engine not in ENGINES:
-        raise InputError(f"--engine {engine!r}: choose one of {', '.join(ENGINES)}")
+    check_engine(engine)
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers {workers}: must be >= 1")
     jobs = [dict(kwargs, seed=seed + i, progress=False) for i in range(devices)]
     workers = workers or min(devices, os.cpu_count() or 1)
     results: list[dict | None] = [None] * devices
@@ -462,8 +533,12 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
             kernels_now()
         with ProcessPoolExecutor(max_workers=workers) as pool:
             futs = {pool.submit(_replay_one, job): i for i, job in enumerate(jobs)}
-            for fut in as_completed(futs):
-                done(futs[fut], fut.result())
+            try:
+                for fut in as_completed(futs):
+                    done(futs[fut], fut.result())
+            except BaseException:  # a device failed, or Ctrl-C: the devices not started are not run
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
     if bar:
         bar.close()
     return results  # type: ignore[return-value]
@@ -512,10 +587,15 @@ def _run_ray(jobs: list[dict], scheduler: str | None, done) -> None:
     refs = [remote.remote(job) for job in jobs]
     index = {r: i for i, r in enumerate(refs)}
     pending = list(refs)
-    while pending:
-        ready, pending = ray.wait(pending, num_returns=1)
-        for r in ready:
-            done(index[r], ray.get(r))
+    try:
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            for r in ready:
+                done(index[r], ray.get(r))
+    except BaseException:  # a device failed, or Ctrl-C: the others are cancelled
+        for r in pending:
+            ray.cancel(r)
+        raise
 
 
 def replay_recording(

@@ -234,3 +234,98 @@ def test_the_time_to_calibrated_does_not_depend_on_the_pieces_the_timed_calibrat
              for piece in (len(args[3]), 97, 256)}
     assert hours[len(args[3])] is not None and 0 < hours[len(args[3])] < 72
     assert hours[97] == hours[256] == hours[len(args[3])]
+
+
+def test_a_checkpoint_of_another_run_or_no_checkpoint_at_all_is_refused_and_kept(tmp_path):
+    """A resumed checkpoint must come from the same run: any other input (the period, the
+    level, the effects, the config...) is named in the error, and the file is left as it
+    was (it was silently restarted and overwritten, or resumed with the old results)."""
+    from selfcal.errors import InputError
+
+    ck = tmp_path / "ck.json"
+    kw = dict(days=1, refit_every_days=0.5, seed=11, config=CFG)
+    first = replay(**kw, checkpoint=ck)
+    text = ck.read_text()
+    assert replay(**kw, checkpoint=ck)["refits"] == first["refits"]  # the same run: resumed (all done)
+    for other, named in ((dict(refit_every_days=0.25), "refit_every_days 0.5 there, 0.25 now"),
+                         (dict(days=2), "days 1 there, 2 now"),
+                         (dict(level="samples"), "level 'poses' there, 'samples' now"),
+                         (dict(random_init=False), "random_init True there, False now"),
+                         (dict(config={**CFG, "fit": {**CFG.get("fit", {}), "max_iter": 99}}),
+                          "config_sha256")):
+        with pytest.raises(InputError, match="written by another run") as err:
+            replay(**{**kw, **other}, checkpoint=ck)
+        assert named in str(err.value) and str(ck) in str(err.value)
+        assert ck.read_text() == text  # not overwritten
+    for bad, why in (("{not json", "not a readable replay checkpoint"), ("[1, 2]", "not a replay checkpoint"),
+                     (json.dumps({k: v for k, v in json.loads(text).items() if k != "run"}), "lacks run")):
+        ck.write_text(bad)
+        with pytest.raises(InputError, match=why):
+            replay(**kw, checkpoint=ck)
+        assert ck.read_text() == bad
+
+
+def test_effects_given_in_another_order_resume_the_same_checkpoint(tmp_path):
+    ck = tmp_path / "ck.json"
+    kw = dict(days=1, refit_every_days=0.5, seed=3, config=CFG)
+    first = replay(**kw, effects=("temperature_bias", "bias_step"), checkpoint=ck)
+    again = replay(**kw, effects=("bias_step", "temperature_bias"), checkpoint=ck)
+    assert _strip(again["refits"]) == _strip(first["refits"])
+
+
+@pytest.mark.parametrize("level", ["poses", "samples"])
+def test_a_last_period_shorter_than_the_others_is_fed_and_refitted(level):
+    """``days`` not a multiple of the period: the days after the last full period were
+    never fed (and with fewer days than one period, no refit at all)."""
+    out = replay(days=1.25, refit_every_days=0.5, seed=5, config=CFG, level=level)
+    assert [r["day"] for r in out["refits"]] == [0.5, 1.0, 1.25]
+    short = replay(days=0.3, refit_every_days=3, seed=5, config=CFG, level=level)
+    assert [r["day"] for r in short["refits"]] == [0.3] and short["refits"][0]["n_poses"] > 0
+
+
+def test_the_samples_level_does_not_depend_on_how_the_simulator_chunks_its_stream(monkeypatch):
+    """A chunk holds whole segments, so it can run past a period's end: its rows from there
+    on belong to the next period (they were fed to the period they started in, and the
+    calibrator's clock was then set back to the period's end). The same stream in chunks of
+    five hours must give the hourly chunks' refits."""
+    from selfcal.sim.simulator import SampleChunk, Simulation
+
+    kw = dict(days=1.0, refit_every_days=0.25, seed=9, config=CFG, level="samples")
+    hourly = replay(**kw)
+    real = Simulation.iter_samples
+
+    def five_hours(self, chunk_s=None, progress=False):
+        chunks = list(real(self, chunk_s=chunk_s))  # (the simulator's draws depend on its chunks)
+        for i in range(0, len(chunks), 5):  # (5 h: a chunk around each 6-h period's end)
+            yield SampleChunk.concatenate(chunks[i:i + 5])
+
+    monkeypatch.setattr(Simulation, "iter_samples", five_hours)
+    whole = replay(**kw)
+    assert len(hourly["refits"]) == 4
+    assert _strip(whole["refits"]) == _strip(hourly["refits"])
+
+
+def test_a_replay_of_another_base_model_is_scored_on_the_nine_base_parameters():
+    for model in ("scale6", "seed9"):
+        out = replay(days=1, refit_every_days=0.5, seed=4, config=CFG, model=model)
+        assert np.isfinite(out["refits"][-1]["param_rel_error"]) and out["refits"][-1]["sphere_norm_rms_mg"] < 50
+
+
+def test_a_failing_device_names_its_seed_and_bad_options_are_clear_errors(capsys, monkeypatch):
+    from selfcal.cli import main
+
+    with pytest.raises(ValueError, match="level") as err:  # in a worker process of the pool
+        replay_fleet(2, seed=40, workers=2, days=1.0, refit_every_days=0.5, config=CFG, level="hourly")
+    assert any("seed 40" in n or "seed 41" in n for n in getattr(err.value, "__notes__", []))
+    for argv, why in ((["--days", "nan"], "--days must be a finite number"),
+                      (["--days", "1", "--refit-every-days", "inf"], "--refit-every-days a finite number"),
+                      (["--days", "1", "--devices", "2", "--workers", "-3"], "--workers -3: must be >= 1"),
+                      (["--days", "1", "--checkpoint", "/nonexistent-dir/ck.json"], "does not exist")):
+        assert main(["replay", *argv, "--no-progress"]) == 2, argv
+        assert why in capsys.readouterr().err, argv
+    import importlib.util
+
+    real_find = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real_find(name, *a))
+    assert main(["replay", "--days", "1", "--engine", "ray", "--no-progress"]) == 2  # one device: checked too
+    assert "--engine ray needs ray" in capsys.readouterr().err

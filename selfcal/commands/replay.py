@@ -85,8 +85,22 @@ def run(args) -> int:
     bad = [e for e in effects if e not in EFFECT_NAMES]
     if bad:
         raise InputError(f"--effects: unknown {bad}; choose from {list(EFFECT_NAMES)}")
-    if args.days <= 0 or args.refit_every_days < 0 or args.devices < 1:
-        raise InputError("--days must be > 0, --refit-every-days >= 0, --devices >= 1")
+    import math
+
+    if not (math.isfinite(args.days) and args.days > 0) or not (
+            math.isfinite(args.refit_every_days) and args.refit_every_days >= 0) or args.devices < 1:
+        raise InputError(f"--days {args.days:g}, --refit-every-days {args.refit_every_days:g}, --devices "
+                         f"{args.devices}: --days must be a finite number > 0, --refit-every-days a finite "
+                         "number >= 0, --devices >= 1")
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers {args.workers}: must be >= 1")
+    from selfcal.replay import check_engine
+
+    check_engine(args.engine or "processes")  # (one device runs here, whatever the engine: checked all the same)
+    if args.checkpoint:
+        from selfcal.commands.calibrate import check_writable
+
+        check_writable(args.checkpoint)
     if args.soaks != "with" and args.level != "poses":
         raise InputError("--soaks without|both works at --level poses (the detector's windows are not filtered)")
     cfg = load_config(args.config)
@@ -113,10 +127,10 @@ def run(args) -> int:
         out = {
             "devices": args.devices, "days": args.days, "wall_s": wall,
             "device_days_per_s": args.devices * args.days / wall,
-            "final_sphere_norm_rms_mg": {
+            "final_sphere_norm_rms_mg": {  # None: no device refitted (too short for its scheduler)
                 "median": float(np.median([x["sphere_norm_rms_mg"] for x in last])),
                 "max": float(np.max([x["sphere_norm_rms_mg"] for x in last])),
-            },
+            } if last else None,
             "time_to_calibrated_h": [r["time_to_calibrated_h"] for r in results],
             "model_selection": selection_summary(results),
             "bias_steps": step_summary(results),
@@ -126,9 +140,11 @@ def run(args) -> int:
         print(json.dumps(out))
         return 0
     if args.devices > 1:
+        final = out["final_sphere_norm_rms_mg"]
         print(f"{args.devices} devices x {args.days:g} days in {out['wall_s']:.1f} s: "
-              f"{out['device_days_per_s']:.1f} simulated device-days/s; final sphere RMS median "
-              f"{out['final_sphere_norm_rms_mg']['median']:.3f} mg, max {out['final_sphere_norm_rms_mg']['max']:.3f} mg")
+              f"{out['device_days_per_s']:.1f} simulated device-days/s; "
+              + (f"final sphere RMS median {final['median']:.3f} mg, max {final['max']:.3f} mg" if final
+                 else "no refit in any device"))
         sel = out["model_selection"]
         day = f"median day of the first switch {sel['median_first_switch_day']:.2f}" \
             if sel["median_first_switch_day"] is not None else "no switch"

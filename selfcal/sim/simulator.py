@@ -74,6 +74,13 @@ class SampleChunk:
     def __len__(self) -> int:
         return len(self.t_s)
 
+    def split(self, t_s: float) -> tuple["SampleChunk", "SampleChunk"]:
+        """The rows before ``t_s`` (s) and the rows from it on (``t_s`` ascending)."""
+        k = int(np.searchsorted(self.t_s, t_s, side="left"))
+        names = SampleChunk.__dataclass_fields__
+        return (SampleChunk(**{n: getattr(self, n)[:k] for n in names}),
+                SampleChunk(**{n: getattr(self, n)[k:] for n in names}))
+
     @staticmethod
     def concatenate(chunks: list["SampleChunk"]) -> "SampleChunk":
         """Join chunks in order."""
