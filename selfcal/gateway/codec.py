@@ -48,7 +48,7 @@ Info record (version 1), little-endian
 --------------------------------------
 ``u8 info_version (=1), u8 packet_version (=1), u16 sample_rate (0.01 Hz per
 LSB), u8 max_samples_per_packet, u8 len + firmware (UTF-8), u8 len +
-device_id (ASCII [A-Za-z0-9._-], 1..64 chars)``.
+device_id (ASCII: a letter or digit, then up to 63 of [A-Za-z0-9._:-], as the service)``.
 """
 
 from __future__ import annotations
@@ -92,7 +92,9 @@ SEQ_MODULUS = 2**32
 
 _HEADER = struct.Struct("<BBIh")
 _INFO_HEAD = struct.Struct("<BBHB")
-_DEVICE_ID_RE = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+#: The service's device ids (selfcal_service.schemas.DEVICE_ID_PATTERN): an id it would
+#: refuse (or that names another path, as ``..`` does) never gets as far as the spool.
+_DEVICE_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._:-]{0,63}$")
 
 #: Control command: set the maximum number of samples per packet (u8 argument).
 CONTROL_SET_MAX_SAMPLES = 0x01
@@ -140,7 +142,7 @@ class DeviceInfo:
     Attributes
     ----------
     device_id : str
-        Stable id used in the service URL; ``[A-Za-z0-9._-]``, 1..64 chars.
+        Stable id used in the service URL; a letter or digit, then up to 63 of ``[A-Za-z0-9._:-]`` (the service's ids).
     firmware : str
         Firmware version string (UTF-8, at most 255 bytes).
     sample_rate_hz : float
@@ -296,7 +298,7 @@ def validate_device_id(device_id: str) -> str:
     """Return ``device_id`` if it is a valid id, else raise :class:`CodecError`."""
     if not isinstance(device_id, str) or not _DEVICE_ID_RE.match(device_id):
         raise CodecError(
-            f"device_id must be 1..64 characters of [A-Za-z0-9._-], got {device_id!r}"
+            f"device_id must be a letter or digit, then up to 63 of [A-Za-z0-9._:-], got {device_id!r}"
         )
     return device_id
 

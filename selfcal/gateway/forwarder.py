@@ -10,10 +10,16 @@ Outcomes of a POST:
 
 * 200 -> acknowledged (``duplicate: true`` too): the batch leaves the spool;
 * network error, timeout, 408, 429, 5xx, 401/403 (wrong key) and 404 (wrong
-  URL) -> kept; the forwarder backs off exponentially with jitter
-  (``backoff_initial_s`` doubling up to ``backoff_max_s``) and retries;
-* 400, 409, 413, 422 -> the batch itself is refused: moved to the spool's
-  ``rejected`` table so it cannot block the device's later batches.
+  URL) -> kept; that device backs off exponentially with jitter
+  (``backoff_initial_s`` doubling up to ``backoff_max_s``) and retries, while the
+  other devices go on (one device whose batches always fail held every device back);
+* 409 -> the service holds this seq with other content (the spool was lost or
+  replaced, two gateways serve one insole, or a power cut rolled an older spool back):
+  the device's pending batches get new seqs after the spool's, then further ahead
+  (doubling) at each 409 in a row, and are sent again: nothing is dropped (they were
+  moved to ``rejected``, and their samples lost);
+* 400, 413, 422 -> the batch itself is refused: moved to the spool's ``rejected``
+  table so it cannot block the device's later batches.
 """
 
 from __future__ import annotations
@@ -31,7 +37,11 @@ from selfcal.gateway.spool import Spool, SpooledBatch
 log = logging.getLogger(__name__)
 
 #: Statuses that mean "this batch will never be accepted".
-REJECT_STATUSES = frozenset({400, 409, 413, 422})
+REJECT_STATUSES = frozenset({400, 413, 422})
+
+#: The farthest a 409 moves a device's seqs past the spool's (the service refuses a seq more
+#: than its ``max_seq_jump``, 100 000 by default, above the device's highest stored one).
+MAX_SEQ_SKIP = 50_000
 
 AckCallback = Callable[[str, int, bool], None]
 
@@ -67,8 +77,8 @@ class Forwarder:
         Description of the last failure.
     consecutive_failures : int
         Failed rounds since the last success.
-    batches_sent, duplicates, retries, rejected : int
-        Counters since start.
+    batches_sent, duplicates, retries, rejected, renumbered : int
+        Counters since start (``renumbered``: batches given new seqs after a 409).
     """
 
     def __init__(
@@ -111,6 +121,10 @@ class Forwarder:
         self.duplicates = 0
         self.retries = 0
         self.rejected = 0
+        self.renumbered = 0
+        self._device_failures: dict[str, int] = {}  # failed posts in a row, per device
+        self._device_retry_at: dict[str, float] = {}  # loop time before which a device is not posted
+        self._conflicts: dict[str, int] = {}  # 409s in a row, per device
 
     def url(self, device_id: str) -> str:
         """The samples endpoint of ``device_id``."""
@@ -151,6 +165,7 @@ class Forwarder:
         try:
             async with asyncio.timeout(timeout_s):
                 while True:
+                    self._device_retry_at.clear()  # now, whatever each device's backoff
                     if await self._drain():
                         return True
                     pause = min(self._delay(), deadline - loop.time())
@@ -158,8 +173,10 @@ class Forwarder:
         except TimeoutError:
             return not self.spool.heads(1)
 
-    def _delay(self) -> float:
-        base = min(self.backoff_max_s, self.backoff_initial_s * 2 ** max(self.consecutive_failures - 1, 0))
+    def _delay(self, failures: int | None = None) -> float:
+        """A jittered backoff (s) after ``failures`` in a row (default: failed rounds)."""
+        k = self.consecutive_failures if failures is None else failures
+        base = min(self.backoff_max_s, self.backoff_initial_s * 2 ** max(k - 1, 0))
         return self._rng.uniform(base / 2, base)
 
     async def _run(self) -> None:
@@ -183,20 +200,40 @@ class Forwarder:
             except Exception:  # noqa: BLE001 - never let the loop die; retried later
                 log.exception("forwarder round failed")
                 ok = False
-            self._retry_at = 0.0 if ok else loop.time() + self._delay()
+            if ok:
+                self._retry_at = 0.0
+            else:  # the first device whose backoff ends (a new batch of another device wakes it sooner)
+                waits = [t for t in self._device_retry_at.values() if t > loop.time()]
+                self._retry_at = min(waits) if waits else loop.time() + self._delay()
 
     async def _drain(self) -> bool:
-        """Post rounds of head batches until the spool is empty (True) or a round fails."""
+        """Post rounds of head batches until the spool is empty (True), or until every
+        device left is waiting out its own backoff (False). A device whose post fails waits;
+        the others go on."""
         async with self._drain_lock:
+            loop = asyncio.get_running_loop()
             while True:
                 heads = self.spool.heads()
                 if not heads:
                     return True
-                results = await asyncio.gather(*(self._post(batch) for batch in heads))
-                if not all(results):
-                    self.consecutive_failures += 1
+                now = loop.time()
+                ready = [b for b in heads if self._device_retry_at.get(b.device_id, 0.0) <= now]
+                if not ready:
                     return False
-                self.consecutive_failures = 0
+                outcomes = await asyncio.gather(*(self._post(batch) for batch in ready), return_exceptions=True)
+                results = []
+                for batch, outcome in zip(ready, outcomes):
+                    if isinstance(outcome, BaseException):  # (the spool's own error: kept, retried)
+                        if isinstance(outcome, asyncio.CancelledError):
+                            raise outcome
+                        log.error("%s seq %d: %r (kept in the spool)", batch.device_id, batch.seq, outcome)
+                        self._device_backoff(batch.device_id)
+                        outcome = False
+                    results.append(outcome)
+                if not any(results):
+                    self.consecutive_failures += 1
+                else:
+                    self.consecutive_failures = 0
 
     async def _post(self, batch: SpooledBatch) -> bool:
         """POST one batch; returns False if it must be retried later."""
@@ -215,6 +252,7 @@ class Forwarder:
             except (ValueError, AttributeError):
                 log.warning("service answered 200 without a JSON body for %s seq %d", batch.device_id, batch.seq)
             self.spool.ack(batch)
+            self._device_ok(batch.device_id)
             self.service_up = True
             self.batches_sent += 1
             self.duplicates += duplicate
@@ -222,16 +260,40 @@ class Forwarder:
                 self.on_ack(batch.device_id, batch.n_samples, duplicate)
             return True
         detail = response.text[:200]
+        if status == 409:
+            self.service_up = True
+            self._device_failures.pop(batch.device_id, None)
+            self._device_retry_at.pop(batch.device_id, None)
+            k = self._conflicts.get(batch.device_id, 0) + 1
+            self._conflicts[batch.device_id] = k
+            start = max(self.spool.next_seq(batch.device_id), batch.seq + 1) + min(2 ** (k - 1) - 1, MAX_SEQ_SKIP)
+            n = self.spool.renumber(batch.device_id, start)
+            self.renumbered += n
+            log.warning("service holds %s seq %d with other content (HTTP 409: %s): its %d pending batch(es) "
+                        "renumbered from seq %d and sent again", batch.device_id, batch.seq, detail, n, start)
+            return True
         if status in REJECT_STATUSES:
             self.service_up = True
             self.rejected += 1
             reason = f"HTTP {status}: {detail}"
             log.error("service rejected %s batch seq %d for good: %s", batch.device_id, batch.seq, reason)
             self.spool.reject(batch, status, reason)
+            self._device_ok(batch.device_id)
             return True
         return self._failed(batch, f"POST {self.url(batch.device_id)}: HTTP {status}: {detail}")
 
+    def _device_ok(self, device_id: str) -> None:
+        self._device_failures.pop(device_id, None)
+        self._device_retry_at.pop(device_id, None)
+        self._conflicts.pop(device_id, None)
+
+    def _device_backoff(self, device_id: str) -> None:
+        k = self._device_failures.get(device_id, 0) + 1
+        self._device_failures[device_id] = k
+        self._device_retry_at[device_id] = asyncio.get_running_loop().time() + self._delay(k)
+
     def _failed(self, batch: SpooledBatch, message: str) -> bool:
+        self._device_backoff(batch.device_id)
         was_up = self.service_up is not False
         self.service_up = False
         self.last_error = message

@@ -38,6 +38,14 @@ from selfcal.gateway.errors import GatewayError
 from selfcal.gateway.forwarder import Forwarder
 from selfcal.gateway.spool import Spool
 
+#: The service's plausible sensor temperatures (degC, selfcal_service.schemas): a batch with a
+#: reading outside them is sent without its temperatures (the service refuses the whole batch).
+TEMP_MIN_C, TEMP_MAX_C = -40.0, 85.0
+
+#: While the spool cannot store (a full disk), a device's samples stay open, at most this many
+#: batches of them; beyond it the oldest are dropped and counted (``samples_dropped``).
+SPOOL_RETRY_MAX_BATCHES = 50
+
 log = logging.getLogger(__name__)
 
 
@@ -46,7 +54,7 @@ class GatewayConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    batch_max_samples: int = Field(200, ge=1, le=100_000)
+    batch_max_samples: int = Field(200, ge=1, le=2_000)  # the service's max_batch_samples default
     batch_max_age_s: float = Field(5.0, gt=0)
     connect_concurrency: int = Field(1, ge=1, le=64)
     connect_attempts: int = Field(2, ge=1, le=10)
@@ -127,6 +135,9 @@ class _DeviceState:
     malformed_packets: int = 0
     batches_forwarded: int = 0
     duplicates: int = 0
+    spool_errors: int = 0  # batches the spool could not store (kept open, tried again)
+    samples_dropped: int = 0  # received, then dropped: the spool failed past SPOOL_RETRY_MAX_BATCHES
+    temp_dropped: int = 0  # batches sent without temperature: a reading outside the service's range
     counts: list[np.ndarray] = field(default_factory=list)
     acc: list[np.ndarray] = field(default_factory=list)
     pressure: list[np.ndarray] = field(default_factory=list)
@@ -413,16 +424,20 @@ class Gateway:
             link.state = "disconnected"
         return streamed
 
-    def _device(self, info: codec.DeviceInfo, link: _Link) -> _DeviceState:
-        dev = self._devices.get(info.device_id)
+    def _known_device(self, device_id: str) -> _DeviceState:
+        """The device's state, made at first sight from the spool's persisted sample-index
+        state (so a device whose spooled batches are acknowledged before it reconnects
+        still continues its timeline where the last run left it)."""
+        dev = self._devices.get(device_id)
         if dev is None:
             assert self._spool is not None
-            state = self._spool.device_state(info.device_id)
-            dev = _DeviceState(
-                device_id=info.device_id,
-                tracker=codec.SeqTracker(state.last_count, state.count_offset),
-            )
-            self._devices[info.device_id] = dev
+            state = self._spool.device_state(device_id)
+            dev = _DeviceState(device_id=device_id, tracker=codec.SeqTracker(state.last_count, state.count_offset))
+            self._devices[device_id] = dev
+        return dev
+
+    def _device(self, info: codec.DeviceInfo, link: _Link) -> _DeviceState:
+        dev = self._known_device(info.device_id)
         if dev.open_n and dev.sample_rate_hz != info.sample_rate_hz:
             self._close_batch(dev)
         dev.address = link.address
@@ -459,14 +474,44 @@ class Gateway:
             self._close_batch(dev)
 
     def _close_batch(self, dev: _DeviceState) -> None:
+        """Spool the device's open samples as batches of at most ``batch_max_samples`` (more
+        than one only after the spool failed: those samples were kept open)."""
         if not dev.open_n or self._spool is None:
             return
         counts = np.concatenate(dev.counts)
         acc = np.concatenate(dev.acc)
         pressure = np.concatenate(dev.pressure)
         temp = np.concatenate(dev.temp)
-        dev.counts, dev.acc, dev.pressure, dev.temp = [], [], [], []
-        n, dev.open_n = dev.open_n, 0
+        size = self.config.batch_max_samples
+        done = 0
+        while done < len(counts):
+            part = slice(done, done + size)
+            try:
+                self._spool_batch(dev, counts[part], acc[part], pressure[part], temp[part])
+            except Exception as exc:  # noqa: BLE001 - a full disk must not kill the BLE side
+                # the samples stay open and are tried again at the next close; past a bound
+                # the oldest go (counted in samples_dropped), so memory cannot grow without end
+                dev.spool_errors += 1
+                keep = SPOOL_RETRY_MAX_BATCHES * size
+                drop = max(0, len(counts) - done - keep)
+                rest = slice(done + drop, None)
+                dev.counts, dev.acc, dev.pressure, dev.temp = [counts[rest]], [acc[rest]], [pressure[rest]], [temp[rest]]
+                dev.open_n = len(counts) - done - drop
+                dev.samples_dropped += drop
+                log.error("%s: cannot spool a batch of %d samples (%r): kept open and tried again%s", dev.device_id,
+                          len(counts[part]), exc, f"; the oldest {drop} samples dropped" if drop else "")
+                break
+            done += size
+        else:
+            dev.counts, dev.acc, dev.pressure, dev.temp = [], [], [], []
+            dev.open_n = 0
+        if done and self._forwarder is not None:
+            self._forwarder.wake()
+
+    def _spool_batch(self, dev: _DeviceState, counts: np.ndarray, acc: np.ndarray, pressure: np.ndarray,
+                     temp: np.ndarray) -> None:
+        """Store one batch in the spool (raises what the spool raises)."""
+        assert self._spool is not None
         rate = dev.sample_rate_hz
         payload: dict[str, Any] = {
             "t_s": np.round(counts / rate, 6).tolist(),
@@ -474,22 +519,18 @@ class Gateway:
             "ay_g": np.round(acc[:, 1], 6).tolist(),
             "az_g": np.round(acc[:, 2], 6).tolist(),
         }
-        if np.all(np.isfinite(temp)):
+        # the service refuses a whole batch for one temperature outside its plausible range (a
+        # sensor's sentinel, a fault): such a batch goes without its temperatures, not refused
+        if np.all(np.isfinite(temp)) and np.all((temp >= TEMP_MIN_C) & (temp <= TEMP_MAX_C)):
             payload["temp_c"] = np.round(temp, 2).tolist()
+        elif np.any(np.isfinite(temp)):
+            dev.temp_dropped += 1
         payload["pressure_kpa"] = pressure.tolist()
 
         def make_body(seq: int) -> bytes:
             return json.dumps({"seq": seq, **payload}, separators=(",", ":")).encode()
 
-        try:
-            self._spool.put_batch(
-                dev.device_id, n, make_body, dev.tracker.last_count, dev.tracker.offset
-            )
-        except Exception as exc:  # noqa: BLE001 - a full disk must not kill the BLE side
-            log.error("%s: cannot spool a batch of %d samples: %r", dev.device_id, n, exc)
-            return
-        if self._forwarder is not None:
-            self._forwarder.wake()
+        self._spool.put_batch(dev.device_id, len(counts), make_body, dev.tracker.last_count, dev.tracker.offset)
 
     async def _batch_timer(self) -> None:
         period = min(1.0, self.config.batch_max_age_s / 2)
@@ -501,9 +542,7 @@ class Gateway:
                     self._close_batch(dev)
 
     def _on_ack(self, device_id: str, n_samples: int, duplicate: bool) -> None:
-        dev = self._devices.get(device_id)
-        if dev is None:
-            dev = self._devices[device_id] = _DeviceState(device_id=device_id, tracker=codec.SeqTracker())
+        dev = self._known_device(device_id)
         dev.samples_forwarded += n_samples
         dev.batches_forwarded += 1
         dev.duplicates += duplicate
@@ -546,6 +585,9 @@ class Gateway:
                 "malformed_packets": dev.malformed_packets,
                 "batches_forwarded": dev.batches_forwarded,
                 "duplicates": dev.duplicates,
+                "spool_errors": dev.spool_errors,
+                "samples_dropped": dev.samples_dropped,
+                "temp_dropped": dev.temp_dropped,
                 "open_batch_samples": dev.open_n,
                 "spool_batches": batches,
                 "spool_samples": samples,
@@ -565,7 +607,7 @@ class Gateway:
         }
         keys = (
             "samples_received", "samples_forwarded", "samples_lost", "gaps", "restarts",
-            "malformed_packets", "batches_forwarded", "duplicates",
+            "malformed_packets", "batches_forwarded", "duplicates", "spool_errors", "samples_dropped", "temp_dropped",
         )
         totals: dict[str, Any] = {k: sum(d[k] for d in devices.values()) for k in keys}
         totals["devices_connected"] = sum(d["connected"] for d in devices.values())
@@ -582,6 +624,7 @@ class Gateway:
                 "last_error": fwd.last_error if fwd else None,
                 "consecutive_failures": fwd.consecutive_failures if fwd else 0,
                 "retries": fwd.retries if fwd else 0,
+                "renumbered": fwd.renumbered if fwd else 0,
             },
         }
 

@@ -20,7 +20,8 @@ import httpx
 @dataclass
 class FakeService:
     """Records accepted batches; ``up=False`` answers 503; ``fail_after_commit`` n times
-    commits a batch but answers 500 (a lost acknowledgement)."""
+    commits a batch but answers 500 (a lost acknowledgement); a seq resent with other
+    content gets 409 (as the service answers)."""
 
     key: str = "test-key"
     up: bool = True
@@ -29,6 +30,14 @@ class FakeService:
     order: dict[str, list[int]] = field(default_factory=dict)
     duplicates: int = 0
     requests: int = 0
+    fail_devices: set[str] = field(default_factory=set)  # answered 500 whatever they send
+    posts: dict[str, int] = field(default_factory=dict)  # POSTs per device
+
+    def conflicting(self, device_id: str, seqs) -> None:
+        """Hold ``seqs`` of ``device_id`` with content no gateway sends (a lost spool's)."""
+        for seq in seqs:
+            self.batches[(device_id, seq)] = {"seq": seq, "t_s": [-1.0], "ax_g": [0.0], "ay_g": [0.0], "az_g": [1.0]}
+            self.order.setdefault(device_id, []).append(seq)
 
     def handle(self, method: str, path: str, headers: dict[str, str], body: bytes) -> tuple[int, dict]:
         self.requests += 1
@@ -40,6 +49,7 @@ class FakeService:
         if method != "POST" or len(parts) != 3 or parts[0] != "devices" or parts[2] != "samples":
             return 404, {"detail": f"no route {method} {path}"}
         device_id = parts[1]
+        self.posts[device_id] = self.posts.get(device_id, 0) + 1
         try:
             batch = json.loads(body)
             seq = batch["seq"]
@@ -53,6 +63,11 @@ class FakeService:
             return 422, {"detail": f"invalid batch: {exc!r}"}
         key = (device_id, seq)
         duplicate = key in self.batches
+        if duplicate and {k: v for k, v in self.batches[key].items() if k != "seq"} != {
+                k: v for k, v in batch.items() if k != "seq"}:
+            return 409, {"detail": f"seq {seq} of device {device_id!r} is stored with other content"}
+        if device_id in self.fail_devices:
+            return 500, {"detail": f"device {device_id!r}: always failing"}
         if duplicate:
             self.duplicates += 1
         else:

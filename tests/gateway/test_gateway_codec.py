@@ -147,7 +147,7 @@ def test_non_bytes_input_is_malformed_not_a_crash():
 
 @SETTINGS
 @given(
-    st.from_regex(r"[A-Za-z0-9._-]{1,64}", fullmatch=True),
+    st.from_regex(r"[A-Za-z0-9][A-Za-z0-9._:-]{0,63}", fullmatch=True),
     st.text(max_size=60),
     st.integers(1, 65535),
     st.integers(1, 255),

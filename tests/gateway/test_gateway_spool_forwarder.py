@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 
 from gw_fake_service import FakeService
@@ -128,3 +129,86 @@ def test_stop_returns_even_when_woken_in_the_same_iteration(tmp_path):
             await asyncio.wait_for(fwd.stop(), timeout=5.0)
 
     run(body(), timeout_s=60)
+
+
+def _samples_body(t0: float, n: int = 3):
+    return lambda seq: json.dumps({"seq": seq, "t_s": [t0 + i for i in range(n)], "ax_g": [0.0] * n,
+                                   "ay_g": [0.0] * n, "az_g": [1.0] * n}).encode()
+
+
+def test_a_seq_the_service_holds_with_other_content_is_renumbered_not_dropped(tmp_path):
+    """A lost or replaced spool starts its seqs at 0 again; the service holds those seqs
+    with the old spool's batches and answers 409. The batches were moved to ``rejected``
+    (their samples lost); now the device's pending batches get new seqs, further ahead at
+    each 409 in a row, and every sample arrives, in order."""
+    service = FakeService()
+    service.conflicting("dev-1", range(10))
+    spool = Spool(tmp_path / "s.db")
+    for k in range(3):
+        spool.put_batch("dev-1", 3, _samples_body(100.0 + 3 * k), None, 0)
+    spool.put_batch("dev-2", 3, _samples_body(0.0), None, 0)
+
+    async def body():
+        fwd = Forwarder("http://svc", service.key, spool, transport=service.transport(), backoff_initial_s=0.01)
+        assert await fwd.flush(5.0)
+        await fwd.stop()
+        return fwd
+
+    fwd = run(body())
+    assert fwd.rejected == 0 and spool.rejected_count() == 0 and fwd.renumbered >= 3
+    new = service.order["dev-1"][10:]
+    assert len(new) == 3 and min(new) >= 10 and new == sorted(new) and new[-1] - new[0] == 2  # kept together
+    assert service.samples("dev-1")["t_s"][-9:] == [100.0 + i for i in range(9)]  # every sample, in order
+    assert all(service.batches[("dev-1", s)]["seq"] == s for s in new)  # each body names its new seq
+    assert spool.next_seq("dev-1") == new[-1] + 1 and service.order["dev-2"] == [0]
+    # the next batch follows them
+    spool.put_batch("dev-1", 3, _samples_body(200.0), None, 0)
+    run(_flush(service, spool))
+    assert service.order["dev-1"][-1] == new[-1] + 1
+
+
+async def _flush(service, spool):
+    fwd = Forwarder("http://svc", service.key, spool, transport=service.transport(), backoff_initial_s=0.01)
+    assert await fwd.flush(5.0)
+    await fwd.stop()
+
+
+def test_renumbering_refuses_a_start_below_the_pending_seqs(tmp_path):
+    import pytest
+
+    from selfcal.gateway.errors import GatewayError
+
+    spool = Spool(tmp_path / "s.db")
+    for _ in range(3):
+        spool.put_batch("dev-1", 3, _body, None, 0)
+    with pytest.raises(GatewayError, match="not above"):
+        spool.renumber("dev-1", 2)
+    assert [b.seq for b in spool.heads()] == [0]  # nothing changed
+    assert spool.renumber("dev-1", 7) == 3 and spool.next_seq("dev-1") == 10
+    assert [json.loads(b.body)["seq"] for b in spool.heads()] == [7]
+
+
+def test_one_device_whose_posts_always_fail_holds_back_no_other(tmp_path):
+    """Each round posted every device's head and backed off as a whole when any post
+    failed: one device answered 500 for good moved the others at one batch per backoff.
+    Now that device waits out its own backoff while the others drain."""
+    service = FakeService(fail_devices={"dead"})
+    spool = Spool(tmp_path / "s.db")
+    spool.put_batch("dead", 3, _body, None, 0)
+    for _ in range(10):
+        spool.put_batch("live", 3, _body, None, 0)
+
+    async def body():
+        fwd = Forwarder("http://svc", service.key, spool, transport=service.transport(),
+                        backoff_initial_s=30.0, backoff_max_s=60.0)
+        fwd.start()
+        fwd.wake()
+        while len(service.order.get("live", [])) < 10:
+            await asyncio.sleep(0.01)
+        await fwd.stop()
+        return fwd
+
+    fwd = run(body())
+    assert service.order["live"] == list(range(10))
+    assert service.posts["dead"] == 1  # posted once, then waiting its own 15-30 s backoff
+    assert [b.device_id for b in spool.heads()] == ["dead"] and fwd.retries == 1

@@ -1,0 +1,121 @@
+"""The gateway's packet-to-spool path without a radio: a full disk, a temperature the
+service would refuse, a restart whose leftover batches are acknowledged first, and ids."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+
+import numpy as np
+import pytest
+
+from selfcal.gateway import codec
+from selfcal.gateway.gateway import SPOOL_RETRY_MAX_BATCHES, Gateway, _Link
+from selfcal.gateway.spool import Spool
+
+
+def _gateway(path, **config) -> Gateway:
+    gw = Gateway("http://service.test", "k", spool_path=path, config={"batch_max_samples": 20, **config})
+    gw._spool = Spool(path)  # (what start() opens; no radio, no forwarder here)
+    return gw
+
+
+def _connect(gw: Gateway, device_id: str = "ins-1"):
+    info = codec.DeviceInfo(device_id=device_id, firmware="1", sample_rate_hz=20.0, max_samples_per_packet=10)
+    return gw._device(info, _Link(address="AA:BB", ble_device=None, last_seen=0.0))
+
+
+def _feed(gw: Gateway, dev, index: int, n: int = 10, temp_c: float = 25.0) -> None:
+    acc = np.tile([0.0, 0.0, 1.0], (n, 1))
+    gw._on_packet(dev, bytearray(codec.encode_packet(index, acc, np.full((n, 4), 20.0), temp_c)))
+
+
+def _bodies(gw: Gateway, device_id: str = "ins-1") -> list[dict]:
+    rows = gw._spool._db.execute("SELECT body FROM batches WHERE device_id = ? ORDER BY seq", (device_id,))
+    return [json.loads(r[0]) for r in rows]
+
+
+def test_samples_the_spool_cannot_store_stay_open_and_are_stored_later(tmp_path):
+    """A full disk: the batch's buffers were emptied before the write, and its samples
+    vanished uncounted. They now stay open, are stored (in batches of the usual size) once
+    the spool writes again, and only past a bound are the oldest dropped, counted."""
+    gw = _gateway(tmp_path / "s.db")
+    dev = _connect(gw)
+    real = gw._spool.put_batch
+
+    def full(*a, **k):
+        raise sqlite3.OperationalError("database or disk is full")
+
+    gw._spool.put_batch = full
+    for k in range(3):
+        _feed(gw, dev, 10 * k)
+    stats = gw.stats()["devices"]["ins-1"]
+    assert stats["spool_errors"] == 2 and stats["open_batch_samples"] == 30 and stats["samples_dropped"] == 0
+    gw._spool.put_batch = real
+    _feed(gw, dev, 30)
+    t = [b["t_s"] for b in _bodies(gw)]
+    assert [len(x) for x in t] == [20, 20] and sum(t, [])[0] == 0.0  # every sample, in batches of 20
+    assert np.allclose(np.diff(sum(t, [])), 0.05)
+    gw._spool.put_batch = full  # a long outage: memory stays bounded
+    for k in range(4, 4 + 2 * SPOOL_RETRY_MAX_BATCHES + 4):
+        _feed(gw, dev, 10 * k)
+    stats = gw.stats()["devices"]["ins-1"]
+    assert stats["open_batch_samples"] <= SPOOL_RETRY_MAX_BATCHES * 20 + 10
+    assert stats["samples_dropped"] + stats["open_batch_samples"] + 40 == stats["samples_received"]
+
+
+def test_a_temperature_outside_the_services_range_drops_only_the_temperatures(tmp_path):
+    """The packet's temperature field holds -327..327 degC, the service takes -40..85: one
+    sentinel reading had the whole batch refused (422), its acceleration with it."""
+    gw = _gateway(tmp_path / "s.db")
+    dev = _connect(gw)
+    _feed(gw, dev, 0)
+    _feed(gw, dev, 10, temp_c=90.0)
+    _feed(gw, dev, 20)
+    _feed(gw, dev, 30)
+    first, second = _bodies(gw)
+    assert "temp_c" not in first and len(first["t_s"]) == 20  # sent, without its temperatures
+    assert second["temp_c"] == [25.0] * 20
+    assert gw.stats()["devices"]["ins-1"]["temp_dropped"] == 1
+
+
+def test_a_restart_keeps_the_devices_timeline_when_its_leftovers_are_acknowledged_first(tmp_path):
+    """The insole rebooted in the last run (its sample index restarted; the spool keeps the
+    unwrapping offset). After a restart the forwarder acknowledged the leftover batches
+    before the insole reconnected, which made the device's state with a fresh tracker:
+    its time jumped back to 0."""
+    path = tmp_path / "s.db"
+    gw = _gateway(path)
+    dev = _connect(gw)
+    for index in (5000, 5010, 0, 10):  # 20 samples, then the insole restarts its index
+        _feed(gw, dev, index)
+    gw._spool.close()
+    gw = _gateway(path)
+    gw._on_ack("ins-1", 20, False)  # a leftover batch acknowledged before the insole is back
+    dev = _connect(gw)
+    _feed(gw, dev, 20)
+    _feed(gw, dev, 30)
+    starts = [b["t_s"][0] for b in _bodies(gw)]
+    assert starts == [250.0, 251.0, 252.0]  # (5000 / 20 Hz on, never back)
+
+
+@pytest.mark.parametrize("device_id, ok", [("ins-1", True), ("a:b.c_d-9", True), ("..", False), ("-x", False),
+                                            (".hidden", False), ("x" * 64, True), ("x" * 65, False)])
+def test_device_ids_follow_the_services_rule(device_id, ok):
+    """``..`` was accepted and became another URL path (404, retried for ever)."""
+    if ok:
+        assert codec.validate_device_id(device_id) == device_id
+    else:
+        with pytest.raises(codec.CodecError):
+            codec.validate_device_id(device_id)
+
+
+def test_the_gateways_rules_are_the_services():
+    service_schemas = pytest.importorskip("selfcal_service.schemas")
+    from selfcal.gateway import gateway
+
+    assert codec._DEVICE_ID_RE.pattern == service_schemas.DEVICE_ID_PATTERN
+    assert (gateway.TEMP_MIN_C, gateway.TEMP_MAX_C) == (service_schemas.TEMP_MIN_C, service_schemas.TEMP_MAX_C)
+    settings = pytest.importorskip("selfcal_service.settings")
+    le = [m.le for m in gateway.GatewayConfig.model_fields["batch_max_samples"].metadata if hasattr(m, "le")]
+    assert le == [settings.Settings.model_fields["max_batch_samples"].default]  # (a larger batch: 413 for good)
