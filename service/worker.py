@@ -150,6 +150,10 @@ def refusals_of(events: list[dict[str, Any]], rejected: list[tuple[int, int, str
     return out
 
 
+#: The longest hold (s) before a device whose cycles keep failing is tried again.
+FAILURE_HOLD_MAX_S = 60.0
+
+
 @dataclass(frozen=True)
 class LeaseConfig:
     """How a worker leases devices from a shared database (PostgreSQL).
@@ -227,6 +231,7 @@ class RefitWorker:
         # a device fed everything it had is fed again at most this often (monotonic s of its last cycle)
         self.min_cycle_interval_s = min_cycle_interval_s
         self._last_cycle: dict[str, float] = {}
+        self._failures: dict[str, int] = {}  # device -> cycles failed in a row (not storage faults)
         # the calibrator state is written (a checkpoint) once this many samples were fed
         # since the last one (0: every cycle); a restore replays the batches fed since
         self.checkpoint_samples = checkpoint_samples
@@ -345,9 +350,11 @@ class RefitWorker:
                     return
                 device_id, _ = shard.pending.popitem(last=False)
                 self.busy += 1
+            failed_hold_s = None
             try:
                 more = self.process(device_id)
                 backoff_s = 0.5
+                self._failures.pop(device_id, None)
             except ConflictError as exc:  # another writer changed the device (shared database)
                 log.info("device %s: %s; cycle dropped", device_id, exc)
                 self.conflicts += 1
@@ -363,13 +370,19 @@ class RefitWorker:
                 self._stop.wait(backoff_s)
                 backoff_s = min(5.0, 2 * backoff_s)
             except Exception:
-                log.exception("refit cycle failed for device %s", device_id)
-                self.metrics.inc("selfcal_worker_errors_total")
-                more = True
-                self._stop.wait(0.5)  # back off, then retry from the persisted state
+                # this device's own fault (a corrupt checkpoint, a calibrator bug): it is
+                # retried from the persisted state after a hold that doubles with each failure
+                # in a row, while the thread goes on with the other devices (it slept 0.5 s
+                # per failure: a few such devices starved their shard)
+                failed_hold_s = self._failed(device_id)
+                more = False
             finally:
                 with shard.cond:
                     self.busy -= 1
+            if failed_hold_s is not None:
+                if self.lease is None or device_id in self._leased:  # (kept leased while it waits)
+                    self._hold(device_id, failed_hold_s)
+                continue
             if self.lease is None:
                 if more:
                     self._enqueue(device_id)
@@ -392,6 +405,20 @@ class RefitWorker:
                     self._release(device_id, force=True, checkpoint=False)
                 else:  # kept for its next batch; the lease thread gives it up when idle
                     self._idle[device_id] = time.monotonic()
+
+    def _failed(self, device_id: str) -> float:
+        """Count a failed cycle of a device; the hold (s) before its retry: 0.5 s doubled with
+        each failure in a row, at most :data:`FAILURE_HOLD_MAX_S`. The traceback is logged at
+        the first failure and then at every power of two (not at every retry)."""
+        k = self._failures.get(device_id, 0) + 1
+        self._failures[device_id] = k
+        self.metrics.inc("selfcal_worker_errors_total")
+        hold_s = min(FAILURE_HOLD_MAX_S, 0.5 * 2.0 ** (k - 1))
+        if k & (k - 1) == 0:
+            log.exception("refit cycle failed for device %s (%d in a row); retried in %g s", device_id, k, hold_s)
+        else:
+            log.warning("refit cycle failed for device %s (%d in a row); retried in %g s", device_id, k, hold_s)
+        return hold_s
 
     def _keep(self, device_id: str, key: tuple[int | None, int | None], cal: Calibrator) -> None:
         """Cache a device's calibrator; beyond ``cache_max_devices`` the least recently used

@@ -579,3 +579,59 @@ def test_tune_gc_installs_the_refreezer_only_with_a_period_and_the_start_freeze(
     finally:
         gc.unfreeze()
         gc.set_threshold(*old)
+
+
+def test_a_device_whose_cycles_keep_failing_is_held_with_a_doubling_hold_and_starves_no_other(tmp_path):
+    """A device whose cycle raises (a corrupt checkpoint, a calibrator bug) made its refit
+    thread sleep 0.5 s before retrying it, at every failure: a few such devices starved
+    every other device of their shard. The thread now goes on at once, and the device is
+    held 0.5, 1, 2 ... s (at most FAILURE_HOLD_MAX_S); a success resets the count."""
+    import threading
+    import time
+
+    from selfcal_service.metrics import Metrics
+    from selfcal_service.sqlite_store import SQLiteStore
+    from selfcal_service.worker import FAILURE_HOLD_MAX_S, CalibratorFactory, RefitWorker
+
+    store = SQLiteStore(str(tmp_path / "poison.db"))
+    store.open()
+    worker = RefitWorker(store, CalibratorFactory("service_fakes:FakeCalibrator"), Metrics())
+    holds, fed, fail = [], [], {"bad": 3}
+    worker._hold = lambda device_id, delay_s: holds.append((device_id, delay_s))
+
+    def process(device_id):
+        fed.append(device_id)
+        if fail.get(device_id, 0) > 0:
+            fail[device_id] -= 1
+            raise RuntimeError("corrupt checkpoint")
+        return False
+
+    worker.process = process
+    shard = worker._shards[0]
+    thread = threading.Thread(target=worker._loop, args=(shard,), daemon=True)
+    thread.start()
+    try:
+        def feed(device_id):
+            n = len(fed)
+            worker._enqueue(device_id)
+            t_end = time.monotonic() + 30
+            while len(fed) == n or worker.busy:
+                assert time.monotonic() < t_end
+                time.sleep(0.005)
+
+        for device_id in ("bad", "good", "bad", "good", "bad", "bad", "bad"):
+            feed(device_id)
+        fail["bad"] = 1
+        feed("bad")
+        assert fed == ["bad", "good", "bad", "good", "bad", "bad", "bad", "bad"]
+        assert holds == [("bad", 0.5), ("bad", 1.0), ("bad", 2.0), ("bad", 0.5)]  # reset by the success
+        assert worker.metrics.get("selfcal_worker_errors_total") == 4 and worker._failures == {"bad": 1}
+        assert worker.queue_depth() == 0  # nothing re-enqueued behind the hold's back
+        worker._failures["bad"] = 30
+        assert worker._failed("bad") == FAILURE_HOLD_MAX_S
+    finally:
+        worker._stop.set()
+        with shard.cond:
+            shard.cond.notify_all()
+        thread.join(10)
+        store.close()
