@@ -46,6 +46,10 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise InputError(f"{path}: config file not found") from exc
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{path}: invalid TOML: {exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not UTF-8 text (byte {exc.start}): not a TOML config file") from None
+    except OSError as exc:  # a folder, no permission
+        raise InputError(f"{path}: cannot read the config file ({exc.strerror or exc})") from None
 
 
 def load_config(path: str | Path | None = None) -> dict[str, Any]:
@@ -56,7 +60,11 @@ def load_config(path: str | Path | None = None) -> dict[str, Any]:
     """
     cfg = tomllib.loads(default_config_text())
     if path is not None:
-        cfg = _merge(cfg, read_toml(path))
+        user = read_toml(path)
+        for name, value in user.items():  # a section given as a value would replace the whole table
+            if isinstance(cfg.get(name), dict) and not isinstance(value, dict):
+                raise InputError(f"{path}: [{name}] must be a table of settings, got {name} = {value!r}")
+        cfg = _merge(cfg, user)
     return cfg
 
 

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,6 +33,10 @@ def files(tmp_path_factory):
     (d / "garbage.cwa").write_bytes(b"not a CWA file " * 100)
     (d / "data.xyz").write_bytes(bytes(range(256)) * 4)
     (d / "adir").mkdir()
+    (d / "latin1.toml").write_bytes("[fit]\n# caf\xe9\n".encode("latin-1"))
+    (d / "section_value.toml").write_text("detector = 5\n")
+    (d / "list_cal.json").write_text("[1, 2]")
+    (d / "poses_copy.csv").write_bytes(POSES.read_bytes())
     ro = d / "readonly"
     ro.mkdir()
     ro.chmod(0o500)
@@ -69,6 +74,33 @@ CASES = [
     ("unknown command", lambda d: ["calibrat", POSES], 2, "invalid choice"),
     ("negative days", lambda d: ["simulate", "--days", "-1", "--seed", "1", "--out", d / "s.csv"], 2, "--days"),
     ("diagnose an empty file", lambda d: ["diagnose", d / "empty.csv"], 2, "empty"),
+    ("days not finite", lambda d: ["simulate", "--days", "inf", "--seed", "1", "--out", d / "s.csv"], 2, "--days"),
+    ("days below a minute", lambda d: ["simulate", "--days", "1e-9", "--seed", "1", "--out", d / "s.csv"], 2, "--days"),
+    ("negative seed", lambda d: ["simulate", "--days", "0.01", "--seed", "-1", "--out", d / "s.csv"], 2, "--seed"),
+    ("simulate into a folder", lambda d: ["simulate", "--days", "0.01", "--seed", "1", "--out", d / "adir"], 2,
+     "is a directory"),
+    ("replay days beyond a century", lambda d: ["replay", "--days", "1e300", "--no-progress"], 2, "--days"),
+    ("replay a negative seed", lambda d: ["replay", "--days", "1", "--seed", "-1", "--no-progress"], 2, "--seed"),
+    ("config not UTF-8", lambda d: ["calibrate", POSES, "--config", d / "latin1.toml"], 2, "not UTF-8"),
+    ("config is a folder", lambda d: ["calibrate", POSES, "--config", d / "adir"], 2, "cannot read"),
+    ("a section given as a value", lambda d: ["calibrate", POSES, "--config", d / "section_value.toml"], 2,
+     "[detector] must be a table"),
+    ("calibration that is a JSON list", lambda d: ["apply", POSES, "--calibration", d / "list_cal.json",
+                                                   "--out", d / "o.csv"], 2, "JSON object"),
+    ("calibration that is a folder", lambda d: ["apply", POSES, "--calibration", d / "adir", "--out", d / "o.csv"],
+     2, "cannot read"),
+    ("calibrate over its input", lambda d: ["calibrate", d / "poses_copy.csv", "--out", d / "poses_copy.csv"], 2,
+     "also an input"),
+    ("history over its input", lambda d: ["calibrate", d / "poses_copy.csv", "--history", d / "poses_copy.csv"], 2,
+     "also an input"),
+    ("apply over its input", lambda d: ["apply", d / "poses_copy.csv", "--calibration", d / "list_cal.json",
+                                        "--out", d / "poses_copy.csv"], 2, "also an input"),
+    ("apply over its calibration", lambda d: ["apply", POSES, "--calibration", d / "list_cal.json",
+                                              "--out", d / "list_cal.json"], 2, "also an input"),
+    ("a summary over an input", lambda d: ["calibrate", d / "poses_copy.csv", POSES, "--summary",
+                                           d / "poses_copy.csv"], 2, "also an input"),
+    ("two recordings of one name", lambda d: ["calibrate", POSES, d / "adir" / ".." / "poses.csv", "--out-dir",
+                                              d / "adir"], 2, "same name"),
 ]
 
 
@@ -80,6 +112,9 @@ def test_wrong_invocation(files, name, argv, code, needle):
     lines = [ln for ln in p.stderr.splitlines() if ln.strip() and not ln.startswith("usage:") and not ln.startswith("  ")]
     assert len(lines) == 1, p.stderr
     assert needle.lower() in lines[0].lower(), lines[0]
+    # a refused run wrote over nothing it reads
+    assert (files / "poses_copy.csv").read_bytes() == POSES.read_bytes()
+    assert (files / "list_cal.json").read_text() == "[1, 2]"
 
 
 def test_unwritable_output_folder(files):
@@ -113,3 +148,34 @@ def test_worker_idle_puts_the_refit_threads_under_sched_idle():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["True", "True", str(3 + os.nice(0))]
+
+
+def test_a_run_that_publishes_nothing_keeps_an_existing_history(tmp_path):
+    """A failed calibrate (or replay --recording) emptied an existing --history file."""
+    rec = tmp_path / "moving.csv"
+    rng = np.random.default_rng(3)
+    rows = "\n".join(f"{i / 20:.2f},{a:.4f},{b:.4f},{c:.4f}" for i, (a, b, c) in enumerate(rng.normal(0, 1, (400, 3))))
+    rec.write_text("# selfcal-recording v1\n# kind=samples\nt_s,ax_g,ay_g,az_g\n" + rows + "\n")
+    hist = tmp_path / "h.jsonl"
+    hist.write_text('{"version": 1}\n')
+    for argv in (["calibrate", rec, "--history", hist], ["replay", "--recording", rec, "--history", hist]):
+        p = run_cli(*argv)
+        assert p.returncode == 1 and "Traceback" not in p.stderr, p.stderr
+        assert hist.read_text() == '{"version": 1}\n', argv
+
+
+def test_an_interrupted_simulate_leaves_no_partial_file(tmp_path, monkeypatch):
+    from selfcal.cli import main
+    from selfcal.sim.simulator import Simulation
+
+    real = Simulation.iter_samples
+
+    def interrupted(self, *a, **k):
+        it = real(self, *a, **k)
+        yield next(it)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Simulation, "iter_samples", interrupted)
+    out = tmp_path / "s.csv"
+    assert main(["simulate", "--days", "0.2", "--seed", "1", "--out", str(out)]) != 0  # "interrupted"
+    assert list(tmp_path.iterdir()) == []

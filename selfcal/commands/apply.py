@@ -40,6 +40,12 @@ def load_calibration(path: str) -> CalibrationFile:
         raise InputError(f"{path}: calibration file not found") from None
     except json.JSONDecodeError as exc:
         raise InputError(f"{path}:{exc.lineno}:{exc.colno}: invalid JSON: {exc.msg}") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not UTF-8 text (byte {exc.start}): not a calibration file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the calibration file ({exc.strerror or exc})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: a calibration file is a JSON object, got a {type(data).__name__}")
     try:
         return CalibrationFile(**data)
     except ValidationError as exc:
@@ -51,7 +57,7 @@ def run(args) -> int:
     """Calibrate a recording block by block (bounded memory) and write it in g."""
     from selfcal.commands.calibrate import check_writable
 
-    check_writable(args.out)
+    check_writable(args.out, [args.recording, args.calibration])
     cal = load_calibration(args.calibration)
     model = ErrorModel(cal.model, cal.temp_ref_c, cal.t_ref_s)
     theta = model.from_dict(cal.params)

@@ -38,11 +38,15 @@ def add_arguments(parser) -> None:
                         help="several files: where the calibration JSONs go (default: the summary's folder, or .)")
 
 
-def check_writable(path: str) -> None:
-    """Raise InputError unless ``path`` can be written (its directory must exist)."""
+def check_writable(path: str, inputs: "tuple[str, ...] | list[str]" = ()) -> None:
+    """Raise InputError unless ``path`` can be written (its directory must exist) without
+    overwriting one of ``inputs`` (the files the command reads)."""
     p = Path(path)
     if p.is_dir():
         raise InputError(f"{path}: is a directory, not a file")
+    for source in inputs:
+        if p.exists() and Path(source).exists() and os.path.samefile(p, source):
+            raise InputError(f"{path}: is also an input ({source}); writing it would destroy that input")
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise InputError(f"{path}: directory {str(parent)!r} does not exist")
@@ -73,7 +77,13 @@ def run_many(args) -> int:
     if args.jobs < 1:
         raise InputError(f"--jobs: must be >= 1, got {args.jobs}")
     if args.summary:
-        check_writable(args.summary)
+        check_writable(args.summary, args.recording)
+    names: dict[str, str] = {}
+    for rec in args.recording:  # each file's calibration is named after it, in one folder
+        other = names.setdefault(Path(rec).name, rec)
+        if other != rec:
+            raise InputError(f"{other} and {rec} have the same name: their calibrations would both be "
+                             f"{Path(rec).name}.cal.json in the output folder (rename one, or run them apart)")
     out_dir = args.out_dir or (str(Path(args.summary).parent) if args.summary else ".")
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise InputError(f"--out-dir {out_dir}: is a file, not a folder")
@@ -107,7 +117,9 @@ def run(args) -> int:
         cfg.setdefault("selection", {})["enabled"] = False
     for target in (args.out, args.history):  # fail before the work, not after it
         if target:
-            check_writable(target)
+            check_writable(target, [args.recording])
+    if args.out and args.history and Path(args.out).resolve() == Path(args.history).resolve():
+        raise InputError(f"--out and --history are the same file ({args.out})")
     from selfcal.io import plain_columns
     from selfcal.pipeline import calibrate_path
 
@@ -117,7 +129,7 @@ def run(args) -> int:
     # streamed in blocks: only the still poses stay in memory, whatever the file's length
     result = calibrate_path(args.recording, args.model, cfg, progress=args.progress or sys.stderr.isatty(),
                             columns=columns)
-    if args.history:
+    if args.history and result.calibration is not None:  # a run that published nothing keeps the file as it was
         write_history(args.history, result)
     out = {
         "recording": args.recording,
@@ -133,9 +145,10 @@ def run(args) -> int:
             print(json.dumps(dict(out, calibration=None, reason=reason, message=message)))
         raise CalibrationError(reason, f"{args.recording}: no calibration published: {message}")
     cal = result.calibration
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as fh:
-            json.dump(cal, fh, indent=2)
+    if args.out:  # atomic: an existing file is replaced whole or not at all
+        tmp = Path(args.out).with_name(Path(args.out).name + ".tmp")
+        tmp.write_text(json.dumps(cal, indent=2), encoding="utf-8")
+        os.replace(tmp, args.out)
     if args.json:
         print(json.dumps(dict(cal, **out)))
         return 0

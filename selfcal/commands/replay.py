@@ -87,11 +87,15 @@ def run(args) -> int:
         raise InputError(f"--effects: unknown {bad}; choose from {list(EFFECT_NAMES)}")
     import math
 
-    if not (math.isfinite(args.days) and args.days > 0) or not (
+    from selfcal.commands.simulate import MAX_DAYS, MIN_DAYS
+
+    if not (math.isfinite(args.days) and MIN_DAYS <= args.days <= MAX_DAYS) or not (
             math.isfinite(args.refit_every_days) and args.refit_every_days >= 0) or args.devices < 1:
         raise InputError(f"--days {args.days:g}, --refit-every-days {args.refit_every_days:g}, --devices "
-                         f"{args.devices}: --days must be a finite number > 0, --refit-every-days a finite "
-                         "number >= 0, --devices >= 1")
+                         f"{args.devices}: --days must be a finite number from {MIN_DAYS:g} to {MAX_DAYS:g}, "
+                         "--refit-every-days a finite number >= 0, --devices >= 1")
+    if args.seed < 0:
+        raise InputError(f"--seed: must be >= 0, got {args.seed}")
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers {args.workers}: must be >= 1")
     from selfcal.replay import check_engine
@@ -292,13 +296,13 @@ def run_recording(args) -> int:
     if not Path(rec).exists():
         raise InputError(f"{rec}: no such file")
     if args.history:
-        check_writable(args.history)
+        check_writable(args.history, [rec] + ([args.truth] if args.truth else []))
     tp = Path(args.truth) if args.truth else truth_path(rec)
     truth = load_truth(tp) if args.truth or tp.exists() else None
     t0 = time.perf_counter()
     # streamed in blocks, as calibrate: only the still poses stay in memory, whatever the file's length
     run = calibrate_path(rec, args.model, cfg, progress=not args.no_progress and sys.stderr.isatty())
-    if args.history:
+    if args.history and run.calibration is not None:  # a run that published nothing keeps the file as it was
         write_history(args.history, run)
     out = score_recording_run(run, rec, truth)
     out["truth"] = None if truth is None else str(tp)

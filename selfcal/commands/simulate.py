@@ -29,6 +29,9 @@ from selfcal.sim.config import EFFECT_NAMES, SimConfig
 if TYPE_CHECKING:  # the simulator itself loads when the command runs (scipy.signal: ~0.4 s)
     from selfcal.sim.simulator import PoseTable, Simulation
 
+#: The simulated wear simulate and replay accept (days): a minute, and a century.
+MIN_DAYS, MAX_DAYS = 1.0 / 1440.0, 36_500.0
+
 SAMPLE_COLUMNS = ("t_s", "ax_g", "ay_g", "az_g", "temp_c", "p1_kpa", "p2_kpa", "p3_kpa", "p4_kpa")
 #: 8 decimals of g hold the simulated sensor's 1/256-g steps exactly (6 rounded every level by up
 #: to 0.5 ug, the same way at every window of a posture: a small coherent error, docs/simulation.md)
@@ -66,16 +69,20 @@ def write_samples_csv(path: str | os.PathLike, sim: Simulation, seed: int, progr
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     rows = 0
-    with tmp.open("w", encoding="utf-8", newline="\n") as fh:
-        fh.write("\n".join(_meta_lines("samples", sim, seed)) + "\n")
-        fh.write(",".join(SAMPLE_COLUMNS) + "\n")
-        for c in sim.iter_samples(progress=progress):
-            if len(c) == 0:
-                continue
-            table = np.column_stack([c.t_s, c.acc_g, c.temp_c, c.pressure_kpa])
-            np.savetxt(fh, table, fmt=_FMT)
-            rows += len(c)
-    os.replace(tmp, path)
+    try:
+        with tmp.open("w", encoding="utf-8", newline="\n") as fh:
+            fh.write("\n".join(_meta_lines("samples", sim, seed)) + "\n")
+            fh.write(",".join(SAMPLE_COLUMNS) + "\n")
+            for c in sim.iter_samples(progress=progress):
+                if len(c) == 0:
+                    continue
+                table = np.column_stack([c.t_s, c.acc_g, c.temp_c, c.pressure_kpa])
+                np.savetxt(fh, table, fmt=_FMT)
+                rows += len(c)
+        os.replace(tmp, path)
+    except BaseException:  # Ctrl-C, a full disk: no half-written file is left behind
+        tmp.unlink(missing_ok=True)
+        raise
     return rows
 
 
@@ -104,13 +111,17 @@ def run(args: argparse.Namespace) -> int:
         names = [] if args.effects.strip().lower() in ("", "none") else [
             e.strip() for e in args.effects.split(",") if e.strip()]
         cfg = cfg.with_effects(names)
-    if args.days is not None and not args.days > 0:
-        raise InputError(f"--days: must be > 0, got {args.days}")
+    if args.days is not None and not (np.isfinite(args.days) and MIN_DAYS <= args.days <= MAX_DAYS):
+        raise InputError(f"--days: must be a number from {MIN_DAYS:g} to {MAX_DAYS:g}, got {args.days}")
+    if args.seed < 0:
+        raise InputError(f"--seed: must be >= 0, got {args.seed}")
     if args.rate_hz is not None and not 0 < args.rate_hz <= 1000:
         raise InputError(f"--rate-hz: must be in (0, 1000], got {args.rate_hz}")
     out = Path(args.out)
-    if not out.parent.exists():
-        raise InputError(f"--out: directory {out.parent} does not exist")
+    from selfcal.commands.calibrate import check_writable
+
+    check_writable(str(out))  # a folder, a missing folder: before the work, not after it
+    check_writable(str(truth_path(out)))
     t0 = time.perf_counter()
     from selfcal.sim.simulator import Simulation
 
@@ -122,7 +133,9 @@ def run(args: argparse.Namespace) -> int:
     tp = truth_path(out)
     truth = sim.truth.to_dict()
     truth.update({"kind": args.kind, "recording": out.name, "rows": rows})
-    tp.write_text(json.dumps(truth, indent=2) + "\n")
+    tmp = tp.with_name(tp.name + ".tmp")
+    tmp.write_text(json.dumps(truth, indent=2) + "\n")
+    os.replace(tmp, tp)
     summary = {
         "recording": str(out), "truth": str(tp), "kind": args.kind, "rows": rows, "days": sim.days,
         "rate_hz": sim.rate_hz, "seed": args.seed, "effects": list(sim.truth.sensor.enabled),
