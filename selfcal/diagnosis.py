@@ -803,8 +803,9 @@ def soak_only_report(mean, sd, count, t_s, temp_c, normalizer, config) -> dict:
 
 
 def diagnose_recording(rec, config: dict | None = None, base_model: str = "affine9",
-                       keep_arrays: bool = False) -> tuple[dict, dict]:
-    """Diagnose a Recording or a file path (samples: still windows first; a file is streamed).
+                       keep_arrays: bool = False, progress: bool = False) -> tuple[dict, dict]:
+    """Diagnose a Recording or a file path (samples: still windows first; a file is streamed,
+    with a progress bar on stderr if ``progress``).
 
     Returns (report, poses used).
     """
@@ -813,7 +814,7 @@ def diagnose_recording(rec, config: dict | None = None, base_model: str = "affin
     from selfcal.pipeline import path_poses, recording_poses
 
     if isinstance(rec, (str, os.PathLike)):
-        poses, normalizer, _, unit = path_poses(rec, config)
+        poses, normalizer, _, unit = path_poses(rec, config, progress=progress)
         mean, sd, count, t_s, temp = poses["mean"], poses["sd"], poses["count"], poses["t_s"], poses["temp_c"]
         report = diagnose_poses(mean, sd, count, t_s, temp, normalizer, config, base_model, keep_arrays)
         report["recording"] = os.fspath(rec)

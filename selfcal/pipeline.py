@@ -136,18 +136,22 @@ def recording_poses(rec: Recording, config: dict | None = None) -> tuple[dict, N
     return poses, normalizer, notes
 
 
-def path_poses(path, config: dict | None = None, block_rows: int = 100_000) -> tuple[dict, Normalizer, list[str], str]:
+def path_poses(path, config: dict | None = None, block_rows: int = 100_000,
+               progress: bool = False) -> tuple[dict, Normalizer, list[str], str]:
     """:func:`recording_poses` of a file, streaming a samples table in blocks (bounded memory).
 
     Returns ``(poses, normalizer, notes, unit)``. Poses tables, device files and raw
-    counts are read whole (as :func:`calibrate_path` does).
+    counts are read whole (as :func:`calibrate_path` does). ``progress``: a bar on stderr
+    by bytes read.
     """
     from selfcal.detect import DetectorConfig, StaticDetector, StillWindows
     from selfcal.io import iter_recording, read_recording
 
-    blocks = iter_recording(path, block_rows)
+    bar = ByteProgress(path, "still windows", progress)
+    blocks = iter_recording(path, block_rows, progress=bar)
     first = next(blocks)
     if first.kind != "samples" or first.unit == "counts" or len(first) < 2:
+        bar.close(done=False)
         rec = read_recording(path)
         poses, normalizer, notes = recording_poses(rec, config)
         return poses, normalizer, notes, rec.unit
@@ -156,6 +160,7 @@ def path_poses(path, config: dict | None = None, block_rows: int = 100_000) -> t
     det = StaticDetector(DetectorConfig.from_section(cfg.get("detector")))
     parts = [det.feed(*piece) for rec in itertools.chain([first], blocks) for piece in _chunks(rec, normalizer)]
     parts.append(det.flush())
+    bar.close()
     w = StillWindows.concat(parts)
     if len(w) == 0:
         raise InputError(f"{path}: no still window found")
@@ -247,6 +252,34 @@ def calibrate_recording(
     )
 
 
+class ByteProgress:
+    """A progress bar on stderr over the bytes of the file at ``path`` (``enabled`` False:
+    nothing is shown); called with the bytes read so far, as :func:`selfcal.io.iter_recording`'s
+    ``progress`` callback."""
+
+    def __init__(self, path, desc: str, enabled: bool):
+        import os
+
+        self.size = max(os.path.getsize(path), 1) if enabled and os.path.isfile(path) else 1
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.size, unit="B", unit_scale=True, file=sys.stderr, desc=desc)
+
+    def __call__(self, n_bytes: int) -> None:
+        if self.bar is not None:
+            self.bar.update(max(0, min(n_bytes, self.size) - self.bar.n))
+
+    def close(self, done: bool = True) -> None:
+        """End the bar (``done``: at 100 %)."""
+        if self.bar is not None:
+            if done:
+                self.bar.update(self.size - self.bar.n)
+            self.bar.close()
+            self.bar = None
+
+
 def calibrate_path(
     path,
     model: str = "affine9",
@@ -269,22 +302,11 @@ def calibrate_path(
     from selfcal.io import iter_recording, read_recording
 
     config = copy.deepcopy(config or {})
-    size = max(os.path.getsize(path), 1) if os.path.exists(path) else 1
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=size, unit="B", unit_scale=True, file=sys.stderr, desc="calibrate")
-
-    def read_so_far(n_bytes: int) -> None:
-        if bar is not None:
-            bar.update(max(0, min(n_bytes, size) - bar.n))
-
-    blocks = iter_recording(path, block_rows, progress=read_so_far, columns=columns)
+    bar = ByteProgress(path, "calibrate", progress)
+    blocks = iter_recording(path, block_rows, progress=bar, columns=columns)
     first = next(blocks)
     if first.kind != "samples" or first.unit == "counts" or len(first) == 0:
-        if bar:
-            bar.close()
+        bar.close(done=False)
         if columns is not None:  # a plain CSV in counts (the scale needs every still window): gather it
             parts = [first, *blocks]
             temp = None if first.temp_c is None else np.concatenate([b.temp_c for b in parts])
@@ -301,9 +323,7 @@ def calibrate_path(
         for piece in _chunks(rec, normalizer):
             events.extend(cal.feed_samples(*piece))
     events.extend(cal.flush())
-    if bar:
-        bar.update(size - bar.n)
-        bar.close()
+    bar.close()
     notes: list[str] = []
     return CalibrationRun(
         calibration=to_raw_calibration(cal, normalizer, first.unit), status=cal.status, last_refit=cal.last_refit,

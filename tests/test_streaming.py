@@ -164,3 +164,29 @@ def test_apply_streams_blocks_and_equals_the_whole_file(recording, tmp_path, mon
     np.testing.assert_allclose(got.acc, want, rtol=0, atol=1e-15)
     median = float(capsys.readouterr().out.split("median |a| = ")[1].split()[0])
     assert abs(median - np.median(np.linalg.norm(want, axis=1))) <= 1e-5
+
+
+def test_long_jobs_show_progress_by_bytes_read(recording, tmp_path, capsys, monkeypatch):
+    """calibrate, diagnose's still windows and apply show a bar on stderr (apply and diagnose
+    showed nothing: 30-40 s on three days of wear)."""
+    import sys
+
+    from selfcal.pipeline import ByteProgress, path_poses
+
+    recording, _ = recording
+    path_poses(recording, load_config(), block_rows=4000, progress=True)
+    err = capsys.readouterr().err
+    assert "still windows" in err and "100%" in err
+    bar = ByteProgress(recording, "apply", False)  # not shown: nothing written
+    bar(10**9)
+    bar.close()
+    assert capsys.readouterr().err == ""
+    from selfcal.cli import main
+
+    cal = tmp_path / "cal.json"
+    assert main(["calibrate", str(recording), "--out", str(cal)]) == 0
+    capsys.readouterr()
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    assert main(["apply", str(recording), "--calibration", str(cal), "--out", str(tmp_path / "o.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "apply" in err and "100%" in err

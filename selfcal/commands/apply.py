@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -67,8 +68,12 @@ def run(args) -> int:
     edges_g = (0.5, 1.5)
     bins = np.zeros(1_000_002, dtype=np.int64)  # under, 1e6 bins, over
 
+    from selfcal.pipeline import ByteProgress
+
+    bar = ByteProgress(args.recording, "apply", sys.stderr.isatty())
+
     def calibrated():
-        for rec in iter_recording(args.recording):
+        for rec in iter_recording(args.recording, progress=bar):
             if rec.unit != cal.unit:
                 raise InputError(
                     f"{args.recording}: recording is in {rec.unit!r} but {args.calibration} was fitted on "
@@ -82,7 +87,10 @@ def run(args) -> int:
             yield replace(rec, unit="g", acc=a_g, sd=sd, path=args.out,
                           meta=dict(rec.meta, calibrated_with=args.calibration.replace("\n", " ")))
 
-    rows = write_recording_blocks(args.out, calibrated())
+    try:
+        rows = write_recording_blocks(args.out, calibrated())
+    finally:
+        bar.close()
     k = int(np.searchsorted(np.cumsum(bins), (rows + 1) // 2))
     median = edges_g[0] + (k - 0.5) / 1e6 if 0 < k < bins.size - 1 else float("nan")
     print(f"{args.out}: {rows} rows calibrated with {cal.model}; median |a| = {median:.5f} g")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 from selfcal.config import load_config
 
@@ -28,7 +29,8 @@ def run(args) -> int:
         except OSError as exc:
             raise InputError(f"--report {args.report}: cannot create the folder ({exc.strerror or exc})") from exc
     # a path: samples are streamed through the detector in blocks (only still poses in memory)
-    report, _ = diagnose_recording(args.recording, cfg, args.base_model, keep_arrays=bool(args.report))
+    report, _ = diagnose_recording(args.recording, cfg, args.base_model, keep_arrays=bool(args.report),
+                                   progress=sys.stderr.isatty())
     if args.report:
         from selfcal.report import write_report
 
