@@ -297,6 +297,11 @@ def _check_fields(rec: Recording) -> None:
 # --------------------------------------------------------------------------- reading
 
 
+#: The longest line of a recording's preamble (and a plain CSV's first line), bytes: a file
+#: without line ends is refused at this length, not read whole into one line.
+_MAX_HEAD_LINE = 1 << 20
+
+
 def _error(path: str, line: int, col: int, reason: str) -> InputError:
     return InputError(f"{path}:{line}:{col}: {reason}")
 
@@ -340,7 +345,8 @@ def _parse_preamble(path: str, lines: list[str]) -> tuple[int, str, dict[str, st
             if not magic_seen:
                 m = _MAGIC_RE.match(s)
                 if m is None:
-                    raise _error(path, i + 1, 1, f"first comment line must be {MAGIC_LINE!r}, got {s!r}")
+                    shown = s if len(s) <= 80 else s[:80] + "..."
+                    raise _error(path, i + 1, 1, f"first comment line must be {MAGIC_LINE!r}, got {shown!r}")
                 if m.group(1) != "v1":
                     raise _error(path, i + 1, 1, f"unsupported recording version {m.group(1)!r} (this reader knows v1)")
                 magic_seen = True
@@ -806,8 +812,19 @@ def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=
         def decode(raw: bytes, at_line: int) -> str:
             try:
                 return raw.decode("utf-8")
-            except UnicodeDecodeError as exc:
-                raise InputError(f"{name}:{at_line}: not UTF-8 text ({exc.reason}); {_ACCEPTED}") from exc
+            except UnicodeDecodeError as exc:  # the line of the bad byte, not the block's first
+                line = at_line + raw.count(b"\n", 0, exc.start)
+                raise InputError(f"{name}:{line}: not UTF-8 text ({exc.reason}); {_ACCEPTED}") from exc
+
+        def line_of(raw: bytes) -> bytes:  # a line ended by a lone CR (old Mac) would be the whole file
+            end = raw.find(b"\r")
+            if 0 <= end < len(raw) - 2 and raw[end + 1:end + 2] != b"\n":
+                raise InputError(f"{name}: lines end with a lone CR (classic Mac OS); convert the file to "
+                                 "LF or CRLF line endings")
+            if len(raw) >= _MAX_HEAD_LINE and not raw.endswith(b"\n"):
+                raise InputError(f"{name}: a line of the preamble is longer than {_MAX_HEAD_LINE} bytes: not a "
+                                 f"recording; {_ACCEPTED}")
+            return raw
 
         head = fh.read(65536)  # a binary file is refused up front, naming what is accepted
         try:
@@ -820,16 +837,17 @@ def iter_recording(path: str | os.PathLike, block_rows: int = 100_000, progress=
         fh.seek(0)
         pre: list[str] = []
         if columns is not None:  # a plain CSV: our preamble in place of the missing one
-            first = fh.readline()
+            first = line_of(fh.readline(_MAX_HEAD_LINE))
             skipped = 0
+            bom = 3 if first.startswith(b"\xef\xbb\xbf") else 0  # (a BOM before a data row hid its first number)
             try:
-                [float(x) for x in decode(first, 1).strip().split(",")]
-                fh.seek(0)
+                [float(x) for x in decode(first[bom:], 1).strip().split(",")]
+                fh.seek(bom)
             except ValueError:
                 skipped = 1  # the file's own header row
             pre = [MAGIC_LINE, "# kind=samples", ",".join(columns)]
         while columns is None:  # the preamble and the header row
-            raw = fh.readline()
+            raw = line_of(fh.readline(_MAX_HEAD_LINE))
             if not raw:
                 break
             line = decode(raw, len(pre) + 1)

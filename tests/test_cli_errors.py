@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from selfcal.errors import InputError
+
 ROOT = Path(__file__).resolve().parents[1]
 POSES = ROOT / "data" / "ggir-wrist-84h" / "poses.csv"
 
@@ -179,3 +181,24 @@ def test_an_interrupted_simulate_leaves_no_partial_file(tmp_path, monkeypatch):
     out = tmp_path / "s.csv"
     assert main(["simulate", "--days", "0.2", "--seed", "1", "--out", str(out)]) != 0  # "interrupted"
     assert list(tmp_path.iterdir()) == []
+
+
+def test_odd_line_ends_a_bom_and_a_late_bad_byte_are_named_exactly(tmp_path):
+    from selfcal.io import iter_recording
+
+    lines = ["# selfcal-recording v1", "# kind=samples", "t_s,ax_g,ay_g,az_g"] + [
+        f"{i / 20:.2f},0.0,0.0,1.0" for i in range(8000)]
+    cr = tmp_path / "cr.csv"
+    cr.write_bytes("\r".join(lines).encode())
+    p = run_cli("calibrate", cr)
+    assert p.returncode == 2 and "lone CR" in p.stderr and len(p.stderr) < 400, p.stderr[:400]
+    late = tmp_path / "late.csv"  # a bad byte past the first 64 KiB and 2 000 rows: its own line
+    body = "\n".join(lines).encode().replace(b"\n349.00,0.0", b"\n349.00,\xff0.0")
+    late.write_bytes(body + b"\n")
+    with pytest.raises(InputError, match=r"late.csv:6984: not UTF-8"):
+        for _ in iter_recording(late, block_rows=2000):
+            pass
+    bom = tmp_path / "bom.csv"  # a plain CSV (no header row) starting with a BOM
+    bom.write_bytes(b"\xef\xbb\xbf" + "\n".join(ln for ln in lines[3:10]).encode() + b"\n")
+    (rec,) = iter_recording(bom, columns=["t_s", "ax_g", "ay_g", "az_g"])
+    assert len(rec) == 7 and rec.t_s[0] == 0.0  # the first row is data, not a header
