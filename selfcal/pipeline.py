@@ -46,13 +46,60 @@ class CalibrationRun:
     meta: dict = field(default_factory=dict)  # the recording's preamble (device, sensor, rate, ...)
 
 
-def _rough_counts_normalizer(acc: np.ndarray) -> Normalizer:
+def _rough_counts_normalizers(acc: np.ndarray) -> list[Normalizer]:
+    """Candidate counts -> roughly g maps for the detector (a sphere fit of its windows
+    refines the one that finds more windows: :func:`_counts_windows`).
+
+    * centre and half-spread between the 1st and 99th percentiles: right when the axes
+      turn through +-1 g (a wrist), whatever the counts' offset;
+    * signed about 0, the rows' median norm as the scale: right for a device that stays
+      near one orientation (an insole: the first gave 1.5 counts/g where the truth was 256,
+      and no still window passed the norm test).
+    """
     lo, hi = np.percentile(acc, [1, 99], axis=0)
-    half = (hi - lo) / 2
-    scale = float(np.median(half))
-    if not np.isfinite(scale) or scale <= 0:
+    out = []
+    scale = float(np.median((hi - lo) / 2))
+    if np.isfinite(scale) and scale > 0:
+        out.append(Normalizer(tuple(float(c) for c in (hi + lo) / 2), scale))
+    signed = float(np.median(np.linalg.norm(acc, axis=1)))
+    if np.isfinite(signed) and signed > 0:
+        out.append(Normalizer((0.0, 0.0, 0.0), signed))
+    if not out:
         raise InputError("counts: the recording does not vary; cannot estimate counts per g")
-    return Normalizer(tuple(float(c) for c in (hi + lo) / 2), scale)
+    return out
+
+
+def _counts_normalizer(means_counts: np.ndarray, rough: Normalizer) -> tuple[Normalizer, str]:
+    """Counts per g from the still windows' means (counts): the sphere through them, unless
+    they do not determine one (one orientation, as an insole's mostly are: the fit gave
+    0.09 counts/g for 256), or its radius is not within a factor 2 of the ``rough`` map's
+    scale; then the rough map itself. Returns ``(map, note)``."""
+    try:
+        sphere = sphere_normalizer(means_counts)
+        if 0.5 <= sphere.scale / rough.scale <= 2.0:
+            return sphere, (f"counts: sphere fit of {len(means_counts)} still windows gives {sphere.scale:.2f} "
+                            f"counts/g, centre {np.round(sphere.center, 2).tolist()} counts")
+        why = f"their sphere's radius {sphere.scale:.3g} counts is not near the rough {rough.scale:.3g}"
+    except InputError as exc:
+        why = str(exc).removeprefix("counts: ")
+    return rough, (f"counts: {len(means_counts)} still windows do not determine a sphere ({why}): counts per g "
+                   f"taken as {rough.scale:.2f} (the rows' median norm, signed counts), centre "
+                   f"{np.round(rough.center, 2).tolist()}; the calibration refines both")
+
+
+def _counts_windows(rec: Recording, cfg: dict):
+    """The detector's still windows of a raw-counts recording under the first rough map (of
+    :func:`_rough_counts_normalizers`, in their order) with which it finds enough of them
+    for a sphere (4), else the one with which it finds the most: ``(map, windows)``. (The
+    most windows is not the better map: a loose norm test passes more under a wrong scale.)"""
+    best = None
+    for rough in _rough_counts_normalizers(rec.acc):
+        w = _windows_of(rough.to_u(rec.acc), rec, cfg)
+        if len(w) >= 4:
+            return rough, w
+        if best is None or len(w) > len(best[1]):
+            best = (rough, w)
+    return best
 
 
 def _detector_config(config: dict, rate_hz: float, loose_norm: bool) -> dict:
@@ -119,11 +166,18 @@ def recording_poses(rec: Recording, config: dict | None = None) -> tuple[dict, N
     """
     notes: list[str] = []
     if rec.kind == "samples":
-        rough = _rough_counts_normalizer(rec.acc) if rec.unit == "counts" else guess_normalizer(rec.unit)
-        w = _windows_of(rough.to_u(rec.acc), rec, _detector_config(config or {}, rec.rate_hz(), rec.unit == "counts"))
+        cfg = _detector_config(config or {}, rec.rate_hz(), rec.unit == "counts")
+        if rec.unit == "counts":
+            rough, w = _counts_windows(rec, cfg)
+        else:
+            rough = guess_normalizer(rec.unit)
+            w = _windows_of(rough.to_u(rec.acc), rec, cfg)
         if len(w) == 0:
             raise InputError(f"{rec.path}: no still window found")
         poses = _windows_to_poses(w, rough)
+        if rec.unit == "counts":
+            normalizer, note = _counts_normalizer(poses["mean"], rough)
+            return poses, normalizer, [note]
     else:
         if rec.n is not None:
             count = rec.n.astype(float)
@@ -193,17 +247,11 @@ def calibrate_recording(
     if rec.kind == "samples":
         rate = rec.rate_hz()
         if rec.unit == "counts":
-            rough = _rough_counts_normalizer(rec.acc)
-            cfg1 = _detector_config(config, rate, loose_norm=True)
-            w = _windows_of(rough.to_u(rec.acc), rec, cfg1)
+            rough, w = _counts_windows(rec, _detector_config(config, rate, loose_norm=True))
             if len(w) == 0:
                 raise InputError(f"{rec.path}: raw counts with no still window: cannot find the counts-per-g scale")
-            means_counts = w.mean_g * rough.scale + np.asarray(rough.center)
-            normalizer = sphere_normalizer(means_counts)
-            notes.append(
-                f"counts: sphere fit of {len(w)} still windows gives {normalizer.scale:.2f} counts/g, "
-                f"centre {np.round(normalizer.center, 2).tolist()} counts"
-            )
+            normalizer, note = _counts_normalizer(w.mean_g * rough.scale + np.asarray(rough.center), rough)
+            notes.append(note)
         else:
             normalizer = guess_normalizer(rec.unit)
         cfg = _detector_config(config, rate, loose_norm=False)

@@ -134,3 +134,72 @@ def test_apply_refuses_a_calibration_in_another_unit(tmp_path, capsys):
     bad = _write(tmp_path, "bad.json", json.dumps({"model": "affine9", "unit": "g"}))
     code = main(["apply", rec, "--calibration", bad, "--out", str(tmp_path / "o.csv")])
     assert code == 2 and "params" in capsys.readouterr().err
+
+
+def test_raw_counts_of_a_device_that_stays_near_one_orientation_calibrate():
+    """An insole's axes never turn through +-1 g: the counts' percentile spread gave 1.5
+    counts/g for 256, no still window passed the detector, and a counts file of such a
+    device never calibrated. The signed median norm finds the windows; when their means
+    determine a sphere (here they do: 8 degrees of tilt) its radius is the scale."""
+    from selfcal.config import load_config
+    from selfcal.io import Recording
+    from selfcal.pipeline import calibrate_recording
+
+    rng = np.random.default_rng(5)
+    parts = []
+    for _ in range(120):  # 10-s still poses within ~8 degrees of flat, 2 s of motion between
+        d = np.array([0.0, 0.0, 1.0]) + rng.normal(0, 0.07, 3)
+        d /= np.linalg.norm(d)
+        parts += [np.tile(d, (200, 1)) + rng.normal(0, 0.002, (200, 3)), d + rng.normal(0, 0.3, (40, 3))]
+    acc_g = np.vstack(parts)
+    t = np.arange(len(acc_g)) / 20.0
+    counts = Recording(kind="samples", unit="counts", t_s=t, acc=np.round(acc_g * 256.0 + [3, -2, 5]))
+    run = calibrate_recording(counts, config=load_config())
+    assert run.n_windows > 100 and run.calibration is not None
+    assert "254." in run.notes[0] or "255." in run.notes[0] or "256." in run.notes[0], run.notes  # counts per g
+    probe = np.array([[0.0, 0.0, 256.0]])
+    from selfcal.models import ErrorModel
+
+    m = ErrorModel(run.calibration["model"])
+    a = m.apply(m.from_dict(run.calibration["params"]), probe, np.full(1, 25.0), np.zeros(1))
+    assert abs(np.linalg.norm(a) - 1.0) < 0.02  # flat: 1 g within 2 %
+
+
+def test_raw_counts_of_an_insole_that_stays_flat_calibrate(tmp_path):
+    """A simulated insole's stream in g and in counts (256 a g) give the same calibrated
+    specific force."""
+    from selfcal.config import load_config, section
+    from selfcal.io import Recording
+    from selfcal.pipeline import calibrate_recording
+    from selfcal.sim import SimConfig, Simulation
+
+    cfg = load_config()
+    sim = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(7), days=0.4, seed=7)
+    ch = sim.samples()
+    in_g = Recording(kind="samples", unit="g", t_s=ch.t_s, acc=ch.acc_g, temp_c=ch.temp_c)
+    counts = Recording(kind="samples", unit="counts", t_s=ch.t_s, acc=ch.acc_g * 256.0, temp_c=ch.temp_c)
+    g_run, c_run = calibrate_recording(in_g, config=cfg), calibrate_recording(counts, config=cfg)
+    assert c_run.calibration is not None and g_run.calibration is not None
+    assert c_run.n_windows == g_run.n_windows
+    from selfcal.models import ErrorModel
+
+    probe = np.array([[0.0, 0.0, 1.0], [0.3, -0.2, 0.93]])
+    a = [ErrorModel(r.calibration["model"]).apply(
+        ErrorModel(r.calibration["model"]).from_dict(r.calibration["params"]), probe * k, np.full(2, 25.0),
+        np.zeros(2)) for r, k in ((g_run, 1.0), (c_run, 256.0))]
+    np.testing.assert_allclose(a[1], a[0], atol=2e-3)  # within 2 mg
+
+
+def test_still_windows_of_one_orientation_keep_the_rough_counts_scale():
+    from selfcal.fit import Normalizer
+    from selfcal.pipeline import _counts_normalizer
+
+    rng = np.random.default_rng(2)
+    means = np.array([0.0, 0.0, 256.0]) + rng.normal(0, 0.5, (50, 3))  # one orientation, counts
+    rough = Normalizer((0.0, 0.0, 0.0), 256.3)
+    got, note = _counts_normalizer(means, rough)
+    assert got is rough and "do not determine a sphere" in note
+    tilted = np.array([[np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), np.cos(a)] for a, b in
+                       rng.uniform([0, 0], [np.pi, 2 * np.pi], (50, 2))]) * 255.0 + [4.0, -2.0, 1.0]
+    got, note = _counts_normalizer(tilted, rough)
+    assert abs(got.scale - 255.0) < 0.5 and "sphere fit" in note
