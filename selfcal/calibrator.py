@@ -82,6 +82,9 @@ from selfcal.steps import jump_score, latest_jump, refine_time, scan_step, step_
 
 SECONDS_PER_DAY = 86400.0
 STATE_FORMAT_VERSION = 2
+#: The smallest standard deviation a seeded (factory) calibration may give a parameter (g, or
+#: relative for scales): below it the prior's covariance is numerically singular.
+SEED_STD_MIN = 1e-7
 
 
 class SchedulerConfig(BaseModel):
@@ -1043,9 +1046,15 @@ class OnlineCalibrator:
         theta = self.model.from_dict(params)
         sd = np.sqrt(np.diag(datasheet_prior(self.model, self.fit_cfg).cov))
         if std:
+            unknown = sorted(set(std) - set(self.model.param_names))
+            if unknown:
+                raise InputError(f"std: unknown names {unknown} (model {self.model.name}: "
+                                 f"{list(self.model.param_names)})")
             sd = np.array([float(std.get(n, s)) for n, s in zip(self.model.param_names, sd)])
-        if np.any(~np.isfinite(sd)) or np.any(sd <= 0):
-            raise InputError("std: every standard deviation must be finite and > 0")
+        # a smaller sd squared underflows or makes the prior's covariance singular: every later
+        # refit raised (LinAlgError) and the device's batches were all rejected
+        if np.any(~np.isfinite(sd)) or np.any(sd < SEED_STD_MIN):
+            raise InputError(f"std: every standard deviation must be finite and >= {SEED_STD_MIN:g}")
         cov = np.diag(sd**2)
         matrix, offset = self.model.linear(theta)
         det = self._determined(cov)

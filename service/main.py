@@ -25,6 +25,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.responses import PlainTextResponse, Response
 
 from selfcal.errors import InputError
@@ -274,12 +275,35 @@ async def _read_body(request: Request, limit: int) -> bytes:
     return b"".join(chunks)
 
 
+def _accepts_gzip(accept_encoding: str) -> bool:
+    """Whether an ``Accept-Encoding`` value accepts gzip (named, or ``*``, with q > 0)."""
+    accepted = {}
+    for part in accept_encoding.split(","):
+        name, _, params = part.strip().partition(";")
+        q = 1.0
+        for p in params.split(";"):
+            key, _, value = p.strip().partition("=")
+            if key.strip().lower() == "q":
+                try:
+                    q = float(value)
+                except ValueError:
+                    q = 0.0
+        if name.strip():
+            accepted[name.strip().lower()] = q
+    return accepted.get("gzip", accepted.get("x-gzip", accepted.get("*", 0.0))) > 0
+
+
 def _media_type(content_type: str) -> str:
     """The media type of a Content-Type value, parameters left out, lower case."""
     return content_type.split(";")[0].strip().lower()
 
 
 def _content_type(request: Request) -> str:
+    """The request's media type; a compressed body (any Content-Encoding but identity) is a
+    415: it was decoded as if plain (stored as is when its bytes happened to parse)."""
+    encoding = request.headers.get("content-encoding", "identity").strip().lower()
+    if encoding not in ("", "identity"):
+        raise FieldError("Content-Encoding", f"{encoding!r} is not accepted: send the body uncompressed", 415)
     return _media_type(request.headers.get("content-type", "application/json"))
 
 
@@ -315,9 +339,7 @@ def _allowed_methods(app: FastAPI, path: str) -> list[str]:
         match = getattr(route, "path_regex", None)
         if match is not None and match.match(path) and getattr(route, "methods", None):
             methods |= set(route.methods)
-    if "GET" in methods:
-        methods.add("HEAD")
-    return sorted(methods)
+    return sorted(methods)  # (HEAD is not served: not listed)
 
 
 def check_admin_calibration(model_name: str, matrix, offset, params: dict | None, guard) -> None:
@@ -347,8 +369,16 @@ def check_admin_calibration(model_name: str, matrix, offset, params: dict | None
         theta = model.from_linear(m, o)
         where = "matrix"
         if params:
-            theta = model.from_dict(params)
-            where = "params"
+            given = model.from_dict(params)
+            # the params are served (and the matrix and offset they imply): they must be the
+            # given matrix and offset's, or one of the two was silently ignored
+            implied = model.from_linear(*model.linear(given))
+            off = float(np.max(np.abs(implied[:9] - model.from_linear(m, o)[:9])))
+            if off > 1e-6:
+                raise FieldError("params", f"params and matrix/offset describe different corrections (their "
+                                           f"base parameters differ by up to {off:.3g}); give the same calibration "
+                                           "in both")
+            theta, where = given, "params"
     except (InputError, ValueError, np.linalg.LinAlgError) as exc:
         raise FieldError("params", str(exc)) from None
     reason = implausible(model, theta, guard)
@@ -607,6 +637,9 @@ def create_app(
 
             try:
                 await self.inner(scope, receive, send_wrapped)
+            except ClientDisconnect:  # the client left mid-body (or missed body_timeout_s): not our error
+                if not started[0]:
+                    status[0] = 499  # (nginx's code: recorded, never sent)
             except Exception:
                 if started[0]:
                     raise
@@ -705,8 +738,9 @@ def create_app(
                 return False, receive
             ctype = _header(scope, b"content-type")
             ctype = "application/json" if ctype is None else ctype.decode("latin-1")
-            if _media_type(ctype) != BINARY_MEDIA_TYPE or not self._authorized(scope, "ingest"):
-                return False, receive
+            if (_media_type(ctype) != BINARY_MEDIA_TYPE or not self._authorized(scope, "ingest")
+                    or _header(scope, b"content-encoding") not in (None, b"identity")):
+                return False, receive  # (an encoded body: the route's 415)
             limit = settings.max_body_bytes
             declared = _header(scope, b"content-length")
             if declared is not None and (not declared.isdigit() or len(declared) > 18 or int(declared) > limit):
@@ -942,7 +976,7 @@ def create_app(
         devices = [fleet_device_out(f) for f in rows]
         nxt = devices[-1].device_id if len(devices) == limit and device_id is None else None
         body = FleetOut(devices=devices, next_after=nxt).model_dump_json().encode()
-        if len(body) < FLEET_GZIP_MIN_BYTES or "gzip" not in request.headers.get("accept-encoding", ""):
+        if len(body) < FLEET_GZIP_MIN_BYTES or not _accepts_gzip(request.headers.get("accept-encoding", "")):
             return Response(body, media_type="application/json", headers={"Vary": "Accept-Encoding"})
         # a dashboard polls this every 5 s: 1000 devices are ~425 KiB of JSON, ~10x less gzipped
         packed = await run_in_threadpool(gzip.compress, body, 5)

@@ -485,8 +485,9 @@ class FactoryCalibrationIn(BaseModel):
     params: dict[Annotated[str, Field(max_length=32)], Annotated[float, Field(ge=-1e6, le=1e6)]] | None = Field(
         None, max_length=64
     )
-    std: dict[Annotated[str, Field(max_length=32)], Annotated[float, Field(gt=0, le=1e6)]] | None = Field(
-        None, max_length=64
+    std: dict[Annotated[str, Field(max_length=32)], Annotated[float, Field(ge=1e-7, le=1e6)]] | None = Field(
+        None, max_length=64, description="standard deviations of the parameters (g, or relative for scales), "
+                                         ">= 1e-7 (selfcal.calibrator.SEED_STD_MIN)"
     )
     note: str | None = Field(None, max_length=500)
 

@@ -324,3 +324,22 @@ def test_the_bound_on_cells_falls_on_the_same_window_however_poses_are_split():
         assert np.array_equal(store.key, ref.key), piece
         assert np.array_equal(store.stats, ref.stats), piece
         assert (store.n_merged, store.n_dropped, store.n_gated) == (ref.n_merged, ref.n_dropped, ref.n_gated)
+
+
+def test_a_seed_refuses_a_std_its_prior_cannot_hold_and_unknown_names():
+    """A std of 1e-200 squared to 0: the prior's covariance was singular and every later
+    refit raised, so the service rejected all of the device's batches."""
+    import pytest
+
+    from selfcal.calibrator import SEED_STD_MIN
+    from selfcal.config import load_config
+    from selfcal.errors import InputError
+
+    cal = OnlineCalibrator(load_config(), "affine9")
+    params = {"bx": 0, "by": 0, "bz": 0, "sx": 1, "sy": 1, "sz": 1, "nxy": 0, "nxz": 0, "nyz": 0}
+    for std, why in (({"bx": 1e-200}, "std: every standard deviation"), ({"bx": SEED_STD_MIN / 2}, "std: every"),
+                     ({"bogus": 0.1}, "std: unknown names")):
+        with pytest.raises(InputError, match=why):
+            cal.seed_calibration(params, std)
+    cal.seed_calibration(params, {"bx": SEED_STD_MIN})
+    assert cal.calibration()["std"]["bx"] == SEED_STD_MIN

@@ -319,3 +319,74 @@ def test_metrics_prometheus_text(fake_server):
     assert any(k.startswith("selfcal_http_request_duration_seconds_bucket") for k in values)
     assert any(k.startswith('selfcal_worker_queue_depth{pid="') for k in values)  # this process's own
     assert values['selfcal_gc_pause_seconds_count{generation="0",role="api"}'] >= 1  # the collector's pauses are timed
+
+
+# ----------------------------------------------------------------- found by a review (2026-11-28)
+def test_a_compressed_body_is_a_415_on_both_paths_and_stores_nothing(fake_server):
+    """A body with a Content-Encoding was decoded as if plain: stored as is when its bytes
+    happened to parse, a confusing 422 when not."""
+    from selfcal_service.schemas import Batch
+
+    body = batch_json(0, n=20)
+    raw = Batch(0, np.asarray(body["t_s"]), np.column_stack([body["ax_g"], body["ay_g"], body["az_g"]])).to_bytes()
+    import json as _json
+
+    for dev, content, ctype in (("enc-json", _json.dumps(body).encode(), "application/json"),
+                                ("enc-bin", raw, BINARY)):  # (the binary one takes the hot path)
+        r = post(fake_server, dev, None, content=content, headers={"Content-Type": ctype, "Content-Encoding": "gzip"})
+        assert r.status_code == 415 and r.json()["field"] == "Content-Encoding", r.text
+        assert stored(fake_server, dev) is None
+        r = post(fake_server, dev, None, content=content, headers={"Content-Type": ctype, "Content-Encoding": "identity"})
+        assert r.status_code == 200, r.text
+
+
+def test_an_admin_seed_with_a_std_too_small_or_unknown_or_params_unlike_its_matrix_is_refused(fake_server):
+    """A std of 1e-200 was served, and its prior's covariance made every later refit raise:
+    the device's batches were all rejected. Unknown std names were dropped silently, and
+    params that disagree with the matrix replaced it silently."""
+    eye = [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]
+    params = {"bx": 0, "by": 0, "bz": 0, "sx": 1, "sy": 1, "sz": 1, "nxy": 0, "nxz": 0, "nyz": 0}
+    with fake_server.client("admin") as c:
+        r = c.put("/devices/seed-std/calibration", json={"matrix": eye, "offset": [0, 0, 0], "std": {"bx": 1e-200}})
+        assert r.status_code == 422 and r.json()["field"].startswith("std"), r.text
+        r = c.put("/devices/seed-std/calibration", json={"matrix": [[1.2, 0, 0], [0, 1, 0], [0, 0, 1]],
+                                                         "offset": [0.3, 0, 0], "params": params})
+        assert r.status_code == 422 and r.json()["field"] == "params" and "different" in r.text, r.text
+        r = c.put("/devices/seed-std/calibration", json={"matrix": eye, "offset": [0, 0, 0], "params": params})
+        assert r.status_code == 200, r.text  # the same calibration both ways
+        assert c.get("/devices/seed-std/calibration/history", headers=auth("read")).json()["current_version"] == 1
+
+
+def test_a_client_gone_mid_body_is_not_an_internal_error(fake_server):
+    import socket
+    import time
+
+    def internal_errors():
+        with fake_server.client("read") as c:
+            text = c.get("/metrics").text
+        return sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+                   if line.startswith("selfcal_http_internal_errors_total"))
+
+    before = internal_errors()
+    head = (f"POST /devices/gone-1/samples HTTP/1.1\r\nHost: x\r\n{_auth_line()}"
+            "Content-Type: application/json\r\nContent-Length: 400\r\n\r\n{\"seq\": 0, \"t_s\": [")
+    with socket.create_connection(("127.0.0.1", fake_server.port)) as s:
+        s.sendall(head.encode())
+        time.sleep(0.3)
+    time.sleep(0.5)
+    assert internal_errors() == before
+    with fake_server.client("read") as c:
+        r = c.request("HEAD", "/healthz")
+    assert r.status_code == 405 and "HEAD" not in r.headers.get("allow", "")  # not offered, as not served
+
+
+def _auth_line() -> str:
+    return "".join(f"{k}: {v}\r\n" for k, v in auth("ingest").items())
+
+
+def test_gzip_is_sent_only_to_a_client_that_accepts_it():
+    from selfcal_service.main import _accepts_gzip
+
+    assert _accepts_gzip("gzip") and _accepts_gzip("br, gzip;q=0.5") and _accepts_gzip("*")
+    assert not _accepts_gzip("gzip;q=0") and not _accepts_gzip("identity") and not _accepts_gzip("")
+    assert not _accepts_gzip("*, gzip;q=0") and not _accepts_gzip("gzip;q=zero")
