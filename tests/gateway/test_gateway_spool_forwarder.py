@@ -147,14 +147,7 @@ def test_a_seq_the_service_holds_with_other_content_is_renumbered_not_dropped(tm
     for k in range(3):
         spool.put_batch("dev-1", 3, _samples_body(100.0 + 3 * k), None, 0)
     spool.put_batch("dev-2", 3, _samples_body(0.0), None, 0)
-
-    async def body():
-        fwd = Forwarder("http://svc", service.key, spool, transport=service.transport(), backoff_initial_s=0.01)
-        assert await fwd.flush(5.0)
-        await fwd.stop()
-        return fwd
-
-    fwd = run(body())
+    fwd = run(_flush(service, spool))
     assert fwd.rejected == 0 and spool.rejected_count() == 0 and fwd.renumbered >= 3
     new = service.order["dev-1"][10:]
     assert len(new) == 3 and min(new) >= 10 and new == sorted(new) and new[-1] - new[0] == 2  # kept together
@@ -167,10 +160,12 @@ def test_a_seq_the_service_holds_with_other_content_is_renumbered_not_dropped(tm
     assert service.order["dev-1"][-1] == new[-1] + 1
 
 
-async def _flush(service, spool):
+async def _flush(service, spool) -> Forwarder:
+    """A forwarder that empties the spool (within 5 s), then stops."""
     fwd = Forwarder("http://svc", service.key, spool, transport=service.transport(), backoff_initial_s=0.01)
     assert await fwd.flush(5.0)
     await fwd.stop()
+    return fwd
 
 
 def test_renumbering_refuses_a_start_below_the_pending_seqs(tmp_path):

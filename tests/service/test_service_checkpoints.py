@@ -54,6 +54,14 @@ def _worker(store, cfg, checkpoint_samples: int, time_reset_gap_s: float = 60.0)
                        time_reset_gap_s=time_reset_gap_s)
 
 
+def _wait_for(pred, what: str, timeout_s: float = 30.0) -> None:
+    """Wait until ``pred()`` holds (fail naming ``what`` after ``timeout_s``)."""
+    t_end = time.monotonic() + timeout_s
+    while not pred():
+        assert time.monotonic() < t_end, what
+        time.sleep(0.02)
+
+
 def _ingest(store, batches, device: str = "ins") -> None:
     from selfcal_service.schemas import Batch
 
@@ -180,23 +188,17 @@ def test_a_worker_keeps_an_idle_devices_lease_and_writes_its_checkpoint_when_it_
     worker = RefitWorker(db, factory, Metrics(), checkpoint_samples=10**6,
                          lease=LeaseConfig(owner="w1", ttl_s=5.0, poll_s=0.05, idle_s=1.5))
 
-    def wait_for(pred, what, timeout_s=30.0):
-        t_end = time.monotonic() + timeout_s
-        while not pred():
-            assert time.monotonic() < t_end, what
-            time.sleep(0.02)
-
     try:
         worker.start()
         _ingest(api, batches[:1])
-        wait_for(lambda: api.load_device("ins", with_state=False).processed_seq == 0, "batch 0 fed")
+        _wait_for(lambda: api.load_device("ins", with_state=False).processed_seq == 0, "batch 0 fed")
         t_fed = time.monotonic()
         _ingest(api, batches[1:2])  # stored by another process: the worker is not told
-        wait_for(lambda: api.load_device("ins", with_state=False).processed_seq == 1, "batch 1 fed")
+        _wait_for(lambda: api.load_device("ins", with_state=False).processed_seq == 1, "batch 1 fed")
         if time.monotonic() - t_fed < 1.0:  # (a machine slower than that proves nothing here)
             assert api.lease_counts() == {"w1": 1}
             assert api.load_device("ins", with_state=False).checkpoint is None  # no state written yet
-        wait_for(lambda: api.lease_counts() == {}, "the idle lease given up")
+        _wait_for(lambda: api.lease_counts() == {}, "the idle lease given up")
         rec = api.load_device("ins")
         assert rec.checkpoint is not None and rec.checkpoint.seq == 1 and rec.checkpoint.feed_state["samples"] == 2 * N
         assert worker.cycles == 2 and worker.replays == 0
@@ -230,23 +232,17 @@ def test_a_worker_repairs_leases_it_does_not_know_of_or_has_lost(tmp_path, strea
                                 config={k: v for k, v in cfg.items() if k not in ("service", "gateway")})
     worker = RefitWorker(db, factory, Metrics(), lease=LeaseConfig(owner="w1", ttl_s=1.5, poll_s=0.05, idle_s=30.0))
 
-    def wait_for(pred, what, timeout_s=30.0):
-        t_end = time.monotonic() + timeout_s
-        while not pred():
-            assert time.monotonic() < t_end, what
-            time.sleep(0.02)
-
     try:
         _ingest(api, batches[:1])  # stored; the worker is not told (another API process)
         assert api.acquire_leases("w1", 1.5, 10) == ["ins"]  # committed, its reply "lost"
         worker.start()
-        wait_for(lambda: api.load_device("ins", with_state=False).processed_seq == 0, "the orphan fed")
+        _wait_for(lambda: api.load_device("ins", with_state=False).processed_seq == 0, "the orphan fed")
         assert worker.metrics.get("selfcal_worker_lease_repairs_total", kind="orphan") == 1
         assert "ins" in worker._leased  # released by the repair, then leased again by affinity
         # lost: the lease moves to another worker behind this one's back
         api._read("UPDATE devices SET lease_owner = 'w2', lease_expires = 1e12 WHERE device_id = 'ins' "
                   "RETURNING 1")
-        wait_for(lambda: "ins" not in worker._leased, "the lost lease forgotten")
+        _wait_for(lambda: "ins" not in worker._leased, "the lost lease forgotten")
         assert worker.metrics.get("selfcal_worker_lease_repairs_total", kind="lost") == 1
         _ingest(api, batches[1:2])
         worker.notify("ins")  # w2's device: not leased, not fed, no restore
@@ -261,7 +257,7 @@ def test_a_worker_repairs_leases_it_does_not_know_of_or_has_lost(tmp_path, strea
         shard = w3._shards[0]
         refit = threading.Thread(target=w3._loop, args=(shard,), daemon=True)
         refit.start()
-        wait_for(lambda: w3.conflicts == 1 and w3.busy == 0, "w3's cycle refused")
+        _wait_for(lambda: w3.conflicts == 1 and w3.busy == 0, "w3's cycle refused")
         w3._stop.set()
         with shard.cond:
             shard.cond.notify_all()
