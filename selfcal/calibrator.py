@@ -320,7 +320,8 @@ class OnlineCalibrator:
             j = i + stats["consumed"]
             self.new_since_refit += stats["new_info"]
             self.windows_since_refit += stats["added"]
-            self.t_last_s = max(self.t_last_s if self.t_last_s is not None else -np.inf, float(np.max(t_s[i:j])))
+            if np.isfinite(stats["t_max"]):  # the windows stored move the clock; invalid ones (NaN, n = 0) do not
+                self.t_last_s = max(self.t_last_s if self.t_last_s is not None else -np.inf, stats["t_max"])
             if self._due():
                 events.append(self.refit())
             i = j
@@ -1133,10 +1134,36 @@ class OnlineCalibrator:
 
     @classmethod
     def from_json(cls, text: str | dict) -> "OnlineCalibrator":
-        """Rebuild a calibrator from :meth:`to_json` output (format 2; format 1 states are migrated)."""
-        d = json.loads(text) if isinstance(text, (str, bytes)) else text
-        if d.get("format") != "selfcal-calibrator-state" or d.get("format_version") not in (1, STATE_FORMAT_VERSION):
+        """Rebuild a calibrator from :meth:`to_json` output (format 2; format 1 states are migrated).
+
+        A state that is not JSON, lacks a field, or whose parts do not fit together (a
+        model's parameters of another length, a pose store of another config) is an
+        InputError naming what is wrong, not a late failure at the first refit."""
+        try:
+            d = json.loads(text) if isinstance(text, (str, bytes)) else text
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise InputError(f"calibrator state: not JSON ({exc})") from None
+        if not isinstance(d, dict) or d.get("format") != "selfcal-calibrator-state" or d.get(
+                "format_version") not in (1, STATE_FORMAT_VERSION):
             raise InputError("calibrator state: unknown format or version")
+        try:
+            obj = cls._from_state(d)
+        except InputError:
+            raise
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+            raise InputError(f"calibrator state: corrupt or incomplete ({type(exc).__name__}: {exc})") from None
+        n = obj.model.n_params
+        if obj.current is not None and (len(obj.current.get("theta_u", ())) != n
+                                        or np.shape(obj.current.get("cov_u")) != (n, n)):
+            raise InputError(f"calibrator state: the current fit does not have the {n} parameters of model "
+                             f"{obj.model.name}")
+        if d["format_version"] != 1 and obj.store.config != obj.pose_cfg:
+            raise InputError("calibrator state: its pose store was written under another [poses] config than "
+                             "the state's own")
+        return obj
+
+    @classmethod
+    def _from_state(cls, d: dict) -> "OnlineCalibrator":
         obj = cls(d["config"], d["model"], d["initial_params_u"])
         obj.model = ErrorModel(d["model"], d["temp_ref_c"], d["t_ref_s"])
         obj.detector = _detector_module().StaticDetector.from_state(obj.det_cfg, d["detector"])

@@ -358,8 +358,11 @@ class PoseStore:
         Returns
         -------
         dict with ``added`` (windows stored), ``new_cells``, ``gated``, ``new_info``
-        (new cells, the unit the scheduler counts) and ``consumed`` (the leading windows
-        of the input that were taken: all of them unless ``max_new_cells`` stopped it).
+        (new cells, the unit the scheduler counts), ``consumed`` (the leading windows
+        of the input that were taken: all of them unless ``max_new_cells`` stopped it, or,
+        with ``max_new_cells`` given, the store was bounded), ``t_max`` (s: the latest
+        time of the windows stored, -inf if none; invalid windows are consumed, not stored)
+        and ``bounded`` (whether the store was bounded).
 
         The store is bounded (``max_cells``) right after the window that takes it past
         the bound, as it would be if the windows came one at a time. So with the caller's
@@ -374,7 +377,8 @@ class PoseStore:
         t_s = _as_shape(t_s, (k,))
         temp = None if temp_c is None else _as_shape(temp_c, (k,))
         sd = None if sd_g is None else _as_shape(sd_g, (k, 3))
-        out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0, "consumed": 0}
+        out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0, "consumed": 0, "t_max": -np.inf,
+               "bounded": False}
         i = 0
         while i < k or k == 0:
             left = None if max_new_cells is None else max(int(max_new_cells) - out["new_cells"], 1)
@@ -382,8 +386,13 @@ class PoseStore:
                                   None if temp is None else temp[i:], rate_hz, left)
             for name in ("added", "new_cells", "gated", "new_info"):
                 out[name] += part[name]
+            out["t_max"] = max(out["t_max"], part["t_max"])
+            out["bounded"] = out["bounded"] or part["bounded"]
             i += part["consumed"]
-            if k == 0 or (max_new_cells is not None and out["new_cells"] >= max_new_cells):
+            # a part that bounded the store stops a caller's quota too: the scheduler's
+            # threshold follows the store's size, which the bound just cut (continuing to the
+            # quota counted by the size before it made the refits depend on the calls' split)
+            if k == 0 or (max_new_cells is not None and (out["new_cells"] >= max_new_cells or part["bounded"])):
                 break
         out["consumed"] = i
         return out
@@ -404,7 +413,8 @@ class PoseStore:
             representable = (norm < _MAX_STILL_G) & np.all(sd < _MAX_STILL_G, axis=1)
         valid = (np.all(np.isfinite(mean), axis=1) & (norm > 0) & np.isfinite(t_s) & (count >= 1)
                  & representable)
-        out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0, "consumed": k}
+        out = {"added": 0, "new_cells": 0, "gated": 0, "new_info": 0, "consumed": k, "t_max": -np.inf,
+               "bounded": False}
         if not valid.any():
             return out
         valid_idx = np.flatnonzero(valid)
@@ -489,6 +499,7 @@ class PoseStore:
             self.t_last = np.concatenate([self.t_last, tmax[new]])
             self._index_stale()
         out["added"] = int(len(key))
+        out["t_max"] = float(t_s.max()) if len(t_s) else -np.inf
         out["new_cells"] = int(new.size)
         if max_new_cells is not None and new.size >= max_new_cells:
             # stopped at the window that opened the last cell allowed: invalid windows after
@@ -499,6 +510,7 @@ class PoseStore:
         self.n_seen += int(len(key))
         if len(self) > self.config.max_cells:
             self._bound()
+            out["bounded"] = True
         return out
 
     @staticmethod

@@ -2,6 +2,7 @@ import json
 import re
 
 import numpy as np
+import pytest
 
 from posegen import flat_directions, random_truth, sample_stream, sphere_rms_mg, spread_directions
 from selfcal.calibrator import OnlineCalibrator
@@ -343,3 +344,82 @@ def test_a_seed_refuses_a_std_its_prior_cannot_hold_and_unknown_names():
             cal.seed_calibration(params, std)
     cal.seed_calibration(params, {"bx": SEED_STD_MIN})
     assert cal.calibration()["std"]["bx"] == SEED_STD_MIN
+
+
+@pytest.mark.parametrize("max_cells, k, seed", [(250, 1500, 5), (400, 1600, 6)])
+def test_refits_at_the_pose_bound_do_not_depend_on_how_the_poses_are_split(max_cells, k, seed):
+    """Once the pose store is at its bound, a refit due on the fraction rule (a fraction of the
+    stored cells) fell on another pose when the poses came in one call than one at a time:
+    the store kept adding cells up to the quota counted before the bound cut it. (In the
+    service a restore feeds many batches in one call where the cycles fed them one by one.)"""
+    from selfcal.config import load_config
+
+    cfg = load_config()
+    cfg["poses"] = dict(cfg["poses"], max_cells=max_cells)  # 0.05 x max_cells > refit_every_poses: the fraction rule
+    rng = np.random.default_rng(seed)
+    dirs = rng.standard_normal((20, 3))
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    mean = dirs[rng.integers(0, 20, k)] * (1 + 1e-3 * rng.standard_normal((k, 1)))
+    poses = (mean, np.full((k, 3), 2e-3), np.full(k, 40.0), 600.0 * np.arange(k), 20.0 + 5 * rng.random(k))
+    runs = []
+    for piece in (k, 1, 37):
+        cal = OnlineCalibrator(cfg, "affine9")
+        events = []
+        for i in range(0, k, piece):
+            events += cal.feed_poses(*[x[i:i + piece] for x in poses])
+        runs.append([(e["t_s"], e["published"], e["n_poses"]) for e in events])
+        assert len(cal.store) <= max_cells
+    assert sum(1 for e in runs[0] if e[2] >= 0.9 * max_cells) > 5  # refits at the bound
+    assert runs[1] == runs[0] and runs[2] == runs[0]
+
+
+def test_a_pose_the_store_drops_does_not_move_the_calibrators_clock():
+    """A pose with a NaN time made the clock -inf (and the result depend on the split); an
+    invalid pose (NaN mean) with a time of 1e9 s set the clock there for good, and every
+    later refit was held as 'last version 0 s ago'."""
+    rng = np.random.default_rng(3)
+    k = 40
+    dirs = rng.standard_normal((k, 3))
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    mean = dirs * 1.002 + [0.01, -0.02, 0.015]
+    sd, n, t = np.full((k, 3), 2e-3), np.full(k, 40.0), 1000.0 + 100.0 * np.arange(k)
+    t_nan = t.copy()
+    t_nan[3] = np.nan
+
+    def versions(events):
+        return [(e["t_s"], e["calibration"]["status"]) for e in events if e["published"]]
+
+    a, b = OnlineCalibrator(), OnlineCalibrator()
+    whole = versions(a.feed_poses(mean, sd, n, t_nan))
+    split = versions(b.feed_poses(mean[:3], sd[:3], n[:3], t_nan[:3]) + b.feed_poses(mean[3:], sd[3:], n[3:], t_nan[3:]))
+    assert whole == split and all(np.isfinite(v[0]) for v in whole)
+    c = OnlineCalibrator()
+    c.feed_poses(mean[:20], sd[:20], n[:20], t[:20])
+    c.feed_poses([[np.nan] * 3], None, 40, [1e9])
+    assert c.t_last_s == t[19]
+
+
+def test_a_corrupt_or_mismatched_state_is_refused_at_load_naming_what_is_wrong():
+    """A truncated state raised a bare JSONDecodeError, a missing field KeyError('store'), and
+    a state relabelled to another model loaded and failed at its first refit (the service
+    then refused every batch of the device)."""
+    from selfcal.errors import InputError
+
+    rng = np.random.default_rng(4)
+    k = 40
+    dirs = rng.standard_normal((k, 3))
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    cal = OnlineCalibrator()
+    cal.feed_poses(dirs * 1.002 + 0.01, np.full((k, 3), 2e-3), np.full(k, 40.0), 100.0 * np.arange(k))
+    assert cal.current is not None
+    text = cal.to_json()
+    OnlineCalibrator.from_json(text)  # whole: fine
+    state = json.loads(text)
+    for bad, why in ((text[: len(text) // 2], "not JSON"),
+                     (json.dumps({k: v for k, v in state.items() if k != "store"}), "corrupt or incomplete"),
+                     (json.dumps(dict(state, model="scale6")), "parameters of model scale6"),
+                     (json.dumps(dict(state, store=dict(json.loads(state["store"]) if isinstance(state["store"], str)
+                                                        else state["store"], config=dict(max_cells=7)))),
+                      "another \\[poses\\] config|corrupt")):
+        with pytest.raises(InputError, match=why):
+            OnlineCalibrator.from_json(bad)

@@ -97,8 +97,10 @@ def test_a_full_store_and_a_cap_on_new_cells_change_nothing_either():
         assert (whole.n_gated, whole.n_merged, whole.n_seen) == (parts.n_gated, parts.n_merged, parts.n_seen)
         _assert_same_store(whole, parts)
 
-        # max_new_cells: the call stops at the window that opens the k-th new cell, the
-        # one a window-by-window feed would stop at
+        # max_new_cells: the call stops at the window that opens the k-th new cell, or at
+        # the one that takes the store past its bound, the one a window-by-window feed
+        # would stop at (the caller's scheduler counts by the store's size, which the bound
+        # cuts: it looks again)
         for k in (1, 7, 40):
             capped, single = PoseStore.empty(cfg), PoseStore.empty(cfg)
             capped.add(mean[:900], sd[:900], n[:900], t[:900], temp[:900])
@@ -106,11 +108,12 @@ def test_a_full_store_and_a_cap_on_new_cells_change_nothing_either():
             got = capped.add(mean[900:], sd[900:], n[900:], t[900:], temp[900:], max_new_cells=k)
             new, taken = 0, 0
             for i in range(900, len(t)):
-                new += single.add(mean[i:i + 1], sd[i:i + 1], n[i:i + 1], t[i:i + 1], temp[i:i + 1])["new_cells"]
+                one = single.add(mean[i:i + 1], sd[i:i + 1], n[i:i + 1], t[i:i + 1], temp[i:i + 1])
+                new += one["new_cells"]
                 taken += 1
-                if new >= k:
+                if new >= k or one["bounded"]:
                     break
-            assert (got["consumed"], got["new_cells"]) == (taken, new)
+            assert (got["consumed"], got["new_cells"], got["bounded"]) == (taken, new, one["bounded"])
             np.testing.assert_array_equal(np.sort(capped.key), np.sort(single.key))
 
 
