@@ -262,8 +262,7 @@ class Forwarder:
         detail = response.text[:200]
         if status == 409:
             self.service_up = True
-            self._device_failures.pop(batch.device_id, None)
-            self._device_retry_at.pop(batch.device_id, None)
+            self._device_ok(batch.device_id, conflicts=False)
             k = self._conflicts.get(batch.device_id, 0) + 1
             self._conflicts[batch.device_id] = k
             start = max(self.spool.next_seq(batch.device_id), batch.seq + 1) + min(2 ** (k - 1) - 1, MAX_SEQ_SKIP)
@@ -282,10 +281,13 @@ class Forwarder:
             return True
         return self._failed(batch, f"POST {self.url(batch.device_id)}: HTTP {status}: {detail}")
 
-    def _device_ok(self, device_id: str) -> None:
+    def _device_ok(self, device_id: str, conflicts: bool = True) -> None:
+        """The device's post was answered: its backoff ends (and, with ``conflicts``, its
+        count of 409s in a row)."""
         self._device_failures.pop(device_id, None)
         self._device_retry_at.pop(device_id, None)
-        self._conflicts.pop(device_id, None)
+        if conflicts:
+            self._conflicts.pop(device_id, None)
 
     def _device_backoff(self, device_id: str) -> None:
         k = self._device_failures.get(device_id, 0) + 1
