@@ -47,8 +47,8 @@ class CalibrationRun:
 
 
 def _rough_counts_normalizers(acc: np.ndarray) -> list[Normalizer]:
-    """Candidate counts -> roughly g maps for the detector (a sphere fit of its windows
-    refines the one that finds more windows: :func:`_counts_windows`).
+    """Candidate counts -> roughly g maps for the detector, in the order they are tried
+    (:func:`_counts_windows`; a sphere fit of the windows then refines the map chosen).
 
     * centre and half-spread between the 1st and 99th percentiles: right when the axes
       turn through +-1 g (a wrist), whatever the counts' offset;
