@@ -373,7 +373,7 @@ def check_admin_calibration(model_name: str, matrix, offset, params: dict | None
             # the params are served (and the matrix and offset they imply): they must be the
             # given matrix and offset's, or one of the two was silently ignored
             implied = model.from_linear(*model.linear(given))
-            off = float(np.max(np.abs(implied[:9] - model.from_linear(m, o)[:9])))
+            off = float(np.max(np.abs(implied[:9] - theta[:9])))  # (theta: the matrix and offset's)
             if off > 1e-6:
                 raise FieldError("params", f"params and matrix/offset describe different corrections (their "
                                            f"base parameters differ by up to {off:.3g}); give the same calibration "
