@@ -13,6 +13,10 @@ restarts, and append the samples to the device's open batch. A batch is closed
 when it holds ``batch_max_samples`` samples, is ``batch_max_age_s`` old, or the
 link goes down; a closed batch gets its persisted ``seq`` and goes to the
 SQLite spool, which the :class:`~selfcal.gateway.forwarder.Forwarder` drains.
+The open batches are journalled in the spool every ``journal_every_s``: after a
+crash the next start spools what was journalled, so a ``kill -9`` or a power cut
+loses at most that long of each insole's samples (counted as a gap when the
+insole's next packet arrives).
 After a link loss the task waits for the insole to advertise again and
 reconnects; an insole not heard for ``device_gone_s`` is forgotten until it
 advertises again.
@@ -36,7 +40,7 @@ from selfcal.errors import InputError
 from selfcal.gateway import codec
 from selfcal.gateway.errors import GatewayError
 from selfcal.gateway.forwarder import Forwarder
-from selfcal.gateway.spool import Spool
+from selfcal.gateway.spool import OpenSamples, Spool
 
 #: The service's plausible sensor temperatures (degC, selfcal_service.schemas): a batch with a
 #: reading outside them is sent without its temperatures (the service refuses the whole batch).
@@ -56,6 +60,7 @@ class GatewayConfig(BaseModel):
 
     batch_max_samples: int = Field(200, ge=1, le=2_000)  # the service's max_batch_samples default
     batch_max_age_s: float = Field(5.0, gt=0)
+    journal_every_s: float = Field(1.0, ge=0)  # 0: open batches are not journalled
     connect_concurrency: int = Field(1, ge=1, le=64)
     connect_attempts: int = Field(2, ge=1, le=10)
     reconnect_initial_s: float = Field(0.5, ge=0)
@@ -138,12 +143,14 @@ class _DeviceState:
     spool_errors: int = 0  # batches the spool could not store (kept open, tried again)
     samples_dropped: int = 0  # received, then dropped: the spool failed past SPOOL_RETRY_MAX_BATCHES
     temp_dropped: int = 0  # batches sent without temperature: a reading outside the service's range
+    samples_recovered: int = 0  # journalled open samples of a run that crashed, spooled at this start
     counts: list[np.ndarray] = field(default_factory=list)
     acc: list[np.ndarray] = field(default_factory=list)
     pressure: list[np.ndarray] = field(default_factory=list)
     temp: list[np.ndarray] = field(default_factory=list)
     open_n: int = 0
     open_since: float = 0.0
+    journalled_n: int = 0  # the first open samples, already in the spool's journal
 
 
 @dataclass
@@ -251,6 +258,7 @@ class Gateway:
             on_ack=self._on_ack,
         )
         self._forwarder.start()
+        self._recover_open()
         if self._spool.heads(1):
             self._forwarder.wake()  # batches left by a previous run
         self._scanner = BleakScanner(
@@ -497,6 +505,7 @@ class Gateway:
                 rest = slice(done + drop, None)
                 dev.counts, dev.acc, dev.pressure, dev.temp = [counts[rest]], [acc[rest]], [pressure[rest]], [temp[rest]]
                 dev.open_n = len(counts) - done - drop
+                dev.journalled_n = max(0, dev.journalled_n - done - drop)
                 dev.samples_dropped += drop
                 log.error("%s: cannot spool a batch of %d samples (%r): kept open and tried again%s", dev.device_id,
                           len(counts[part]), exc, f"; the oldest {drop} samples dropped" if drop else "")
@@ -505,6 +514,7 @@ class Gateway:
         else:
             dev.counts, dev.acc, dev.pressure, dev.temp = [], [], [], []
             dev.open_n = 0
+            dev.journalled_n = 0
         if done and self._forwarder is not None:
             self._forwarder.wake()
 
@@ -530,16 +540,74 @@ class Gateway:
         def make_body(seq: int) -> bytes:
             return json.dumps({"seq": seq, **payload}, separators=(",", ":")).encode()
 
-        self._spool.put_batch(dev.device_id, len(counts), make_body, dev.tracker.last_count, dev.tracker.offset)
+        self._spool.put_batch(dev.device_id, len(counts), make_body, dev.tracker.last_count, dev.tracker.offset,
+                              stored_count=int(counts[-1]))
+
+    def _journal_open(self) -> None:
+        """Journal every device's open samples not journalled yet, in one transaction (a
+        failure is logged and tried again at the next tick: the samples stay open)."""
+        if self._spool is None:
+            return
+        parts, devs = [], []
+        for dev in self._devices.values():
+            if dev.open_n > dev.journalled_n:
+                k = dev.journalled_n
+                parts.append(OpenSamples(dev.device_id, dev.sample_rate_hz, np.concatenate(dev.counts)[k:],
+                                         np.concatenate(dev.acc)[k:], np.concatenate(dev.pressure)[k:],
+                                         np.concatenate(dev.temp)[k:], dev.tracker.last_count, dev.tracker.offset))
+                devs.append(dev)
+        if not parts:
+            return
+        try:
+            self._spool.journal(parts)
+        except Exception as exc:  # noqa: BLE001 - a full disk must not kill the BLE side
+            log.error("cannot journal the open batches of %d devices (%r): tried again at the next tick",
+                      len(parts), exc)
+            return
+        for dev in devs:
+            dev.journalled_n = dev.open_n
+
+    def _recover_open(self) -> None:
+        """Spool the open samples a crashed run journalled (each device's in batches, its
+        sample-index state as the journal left it), so they are sent like any others."""
+        assert self._spool is not None
+        for device_id, parts in self._spool.journalled().items():
+            dev = self._known_device(device_id)
+            last = parts[-1]
+            if dev.tracker.last_count is None or last.tracker_last > dev.tracker.last_count:
+                dev.tracker = codec.SeqTracker(last.tracker_last, last.tracker_offset)
+            for part in parts:
+                if not len(part.counts):
+                    continue
+                if dev.open_n and part.sample_rate_hz != dev.sample_rate_hz:
+                    self._close_batch(dev)
+                dev.sample_rate_hz = part.sample_rate_hz
+                dev.counts.append(part.counts)
+                dev.acc.append(part.acc_g)
+                dev.pressure.append(part.pressure_kpa)
+                dev.temp.append(part.temp_c)
+                dev.open_n += len(part.counts)
+                dev.journalled_n = dev.open_n
+                dev.samples_recovered += len(part.counts)
+            if dev.open_n:
+                log.info("%s: %d journalled samples of the last run recovered", device_id, dev.open_n)
+                self._close_batch(dev)
+            else:
+                self._spool.drop_journal(device_id)  # every sample in it is stored
 
     async def _batch_timer(self) -> None:
-        period = min(1.0, self.config.batch_max_age_s / 2)
+        cfg = self.config
+        period = min(1.0, cfg.batch_max_age_s / 2, cfg.journal_every_s or 1.0)
+        journalled = time.monotonic()
         while True:
             await asyncio.sleep(period)
             now = time.monotonic()
             for dev in self._devices.values():
-                if dev.open_n and now - dev.open_since >= self.config.batch_max_age_s:
+                if dev.open_n and now - dev.open_since >= cfg.batch_max_age_s:
                     self._close_batch(dev)
+            if cfg.journal_every_s and now - journalled >= cfg.journal_every_s - 1e-3:
+                self._journal_open()
+                journalled = now
 
     def _on_ack(self, device_id: str, n_samples: int, duplicate: bool) -> None:
         dev = self._known_device(device_id)
@@ -557,6 +625,7 @@ class Gateway:
             ``devices``: per device id ``address, connected, firmware,
             sample_rate_hz, samples_received, samples_forwarded, samples_lost,
             gaps, restarts, malformed_packets, batches_forwarded, duplicates,
+            spool_errors, samples_dropped, temp_dropped, samples_recovered,
             open_batch_samples, spool_batches, spool_samples``;
             ``links``: per address ``state, device_id, connects, disconnects,
             connect_failures, gatt_errors, info_errors, last_error``;
@@ -588,6 +657,7 @@ class Gateway:
                 "spool_errors": dev.spool_errors,
                 "samples_dropped": dev.samples_dropped,
                 "temp_dropped": dev.temp_dropped,
+                "samples_recovered": dev.samples_recovered,
                 "open_batch_samples": dev.open_n,
                 "spool_batches": batches,
                 "spool_samples": samples,
@@ -608,6 +678,7 @@ class Gateway:
         keys = (
             "samples_received", "samples_forwarded", "samples_lost", "gaps", "restarts",
             "malformed_packets", "batches_forwarded", "duplicates", "spool_errors", "samples_dropped", "temp_dropped",
+            "samples_recovered",
         )
         totals: dict[str, Any] = {k: sum(d[k] for d in devices.values()) for k in keys}
         totals["devices_connected"] = sum(d["connected"] for d in devices.values())
