@@ -47,7 +47,7 @@ from collections.abc import Iterable, Iterator
 import itertools
 import os
 import re
-import tempfile
+import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -998,10 +998,11 @@ def write_recording_blocks(path: str | os.PathLike, blocks: Iterable[Recording])
         Rows written.
     """
     target = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+    # a fresh name opened exclusively: the file gets the user's umask (mkstemp's are 0600)
+    tmp = target.parent / f".{target.name}.{secrets.token_hex(8)}.tmp"
     rows = 0
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
+        with open(tmp, "x", encoding="utf-8", newline="\n") as fh:
             names: list[str] | None = None
             last_t = -np.inf
             for rec in blocks:

@@ -326,6 +326,21 @@ def test_write_rejects_unreadable_records(tmp_path: Path) -> None:
     assert not (tmp_path / "x.csv").exists()
 
 
+def test_a_written_recording_gets_the_users_umask_and_leaves_no_temporary_file(tmp_path: Path) -> None:
+    """Recordings were written through mkstemp, whose files are 0600: another user of the
+    group could not read a file the same user writes with any other tool."""
+    import os
+
+    rec = _samples(np.random.default_rng(4), 10, False, False, False)
+    old = os.umask(0o022)
+    try:
+        write_recording(tmp_path / "x.csv", rec)
+    finally:
+        os.umask(old)
+    assert (tmp_path / "x.csv").stat().st_mode & 0o777 == 0o644
+    assert [p.name for p in tmp_path.iterdir()] == ["x.csv"]
+
+
 def test_recording_checks_shapes() -> None:
     with pytest.raises(InputError, match="acc must have shape"):
         Recording(kind="samples", unit="g", t_s=np.zeros(4), acc=np.zeros((4, 2)))
