@@ -8,14 +8,18 @@ turned through orientations on a bench (status calibrated), an insole switched o
 
 The API part (new endpoints, scopes, assets) needs no browser; the browser part skips
 when Playwright or Chromium is missing, except in CI on a machine that could install
-Chromium (``service_browser.browser_required``), where it fails. The sqlite pass writes
-the README's screenshots (``docs/img/ui_fleet.png``, ``docs/img/ui_device.png``).
+Chromium (``service_browser.browser_required``), where it fails. The sqlite pass takes
+screenshots of both pages; with ``SELFCAL_UPDATE_SCREENSHOTS=1`` they replace the README's
+(``docs/img/ui_fleet.png``, ``docs/img/ui_device.png``), else they go to a temporary
+folder (a test run leaves the working tree as it found it).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -33,7 +37,8 @@ BENCH = "bench-07"
 SHORT = "insole-short"
 JIG = "jig-01"
 ALL_DEVICES = sorted([*WEARERS, BENCH, SHORT, JIG])
-SCREENSHOTS = REPO / "docs" / "img"
+SCREENSHOTS = (REPO / "docs" / "img" if os.environ.get("SELFCAL_UPDATE_SCREENSHOTS") == "1"
+               else Path(tempfile.gettempdir()) / "selfcal-ui-screenshots")
 WIDE = {"width": 1280, "height": 800}
 PHONE = {"width": 390, "height": 844}
 
