@@ -21,7 +21,10 @@ version). Every sliding window of ``Twait`` seconds
 * pressure (when given): every channel's sd over time ``<= pressure_sd_max_kpa``
   (the paper's condition 2, read as spread over time per channel);
 * all values finite, and no time step inside the window that is ``<= 0`` or
-  ``> max_gap_s`` (dropped rows within the tolerance do not break a window).
+  ``> max_gap_s`` (dropped rows within the tolerance do not break a window; steps and
+  durations are compared with ``max_gap_s`` and ``min_duration_s`` to within a
+  thousandth of a sample interval, so a step of whole intervals nominally on the
+  threshold is decided by this rule, not by the rounding of large times).
 
 A run of consecutive passing windows ``j = a..b`` covers the samples ``a..b+W-1``
 (every ``W``-sample stretch inside passes). ``trim_s`` is cut from both ends (the
@@ -166,6 +169,19 @@ class DetectorConfig(BaseModel):
                 f"max_window_s ({self.max_window_s}) must be >= min_duration_s "
                 f"({self.min_duration_s})"
             )
+        if self.rate_hz * self.max_gap_s < 1.0:
+            interval = 1.0 / self.rate_hz
+            hint = " (are the times in milliseconds? t_s is in seconds)" if interval >= 1.0 else ""
+            raise ValueError(
+                f"the samples are {interval:g} s apart (rate_hz {self.rate_hz:g}){hint}: more than max_gap_s "
+                f"({self.max_gap_s:g} s), so every time step would break a window (raise max_gap_s)"
+            )
+        if (self.max_window_samples - 1) / self.rate_hz < self.min_duration_s - self.time_tolerance_s:
+            raise ValueError(
+                f"max_window_s ({self.max_window_s:g}) is {self.max_window_samples} samples at {self.rate_hz:g} Hz, "
+                f"which last {(self.max_window_samples - 1) / self.rate_hz:g} s: shorter than min_duration_s "
+                f"({self.min_duration_s:g}), so no window could be kept (raise max_window_s)"
+            )
         if self.window_samples < 2:
             raise ValueError(
                 f"twait_s * rate_hz = {self.twait_s * self.rate_hz:g} samples: the test "
@@ -184,6 +200,24 @@ class DetectorConfig(BaseModel):
                 for err in exc.errors()
             )
             raise InputError(f"config [detector]: {msgs}") from None
+
+    @property
+    def time_tolerance_s(self) -> float:
+        """A thousandth of a sample interval, s: time steps and durations are compared
+        with ``max_gap_s`` and ``min_duration_s`` to within it, so that a step of whole
+        sample intervals nominally on the threshold (3 missing samples at 20 Hz against 0.2 s)
+        is decided by the documented rule, not by the rounding of large times (1.7e9 s)."""
+        return 1e-3 / self.rate_hz
+
+    @property
+    def gap_limit_s(self) -> float:
+        """A step longer than this breaks a window: ``max_gap_s`` plus the time tolerance, s."""
+        return self.max_gap_s + self.time_tolerance_s
+
+    @property
+    def duration_floor_s(self) -> float:
+        """A piece lasting this long or more is kept: ``min_duration_s`` less the time tolerance, s."""
+        return self.min_duration_s - self.time_tolerance_s
 
     # Derived sample counts (the ``_samples`` results of style principle 2).
     @property
@@ -402,7 +436,29 @@ def state_from_dict(d: dict[str, Any], config: DetectorConfig) -> DetectorState:
             f"pressure_kpa {len(state.pressure_kpa)}, buf_start {state.buf_start}, "
             f"n_seen {state.n_seen})"
         )
+    _check_indices(state, config)
     return state
+
+
+def _check_indices(state: DetectorState, cfg: DetectorConfig) -> None:
+    """InputError unless the state's indices are ones :func:`step` leaves: a corrupt state
+    would have the kernels read and write outside their arrays (the numba ones unchecked)."""
+    n, b0 = state.n_seen, state.buf_start
+    problems = []
+    if b0 < 0 or b0 > max(0, n - cfg.window_samples + 1):
+        problems.append(f"buf_start {b0} outside 0..{max(0, n - cfg.window_samples + 1)} (the buffer holds "
+                        "the last W - 1 samples at least)")
+    if not -1 <= state.last_end < max(n, 0):
+        problems.append(f"last_end {state.last_end} outside -1..n_seen - 1 ({n - 1})")
+    if state.run_open and not b0 <= state.piece_start <= n + cfg.trim_samples:
+        problems.append(f"the open piece starts at {state.piece_start}, outside the buffer's {b0}.."
+                        f"{n + cfg.trim_samples}")
+    if state.n_pressure is None and n:
+        problems.append(f"{n} samples seen without a number of pressure channels")
+    if state.n_pressure is not None and state.n_pressure < 0:
+        problems.append(f"n_pressure {state.n_pressure} < 0")
+    if problems:
+        raise InputError(f"detector state: corrupt ({'; '.join(problems)})")
 
 
 # ---------------------------------------------------------------------------- kernels
@@ -666,7 +722,7 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
         # windows (small chunks) are each reduced exactly, as the numpy code does below
         clip = math.nan if cfg.clip_abs_g is None else cfg.clip_abs_g
         norm_tol = math.nan if to_cal is not None else cfg.norm_tol_raw_g
-        codes, n_unsure = kernel(t, x, w, clip, norm_tol, cfg.max_gap_s, thresholds, _ROLL_BLOCK,
+        codes, n_unsure = kernel(t, x, w, clip, norm_tol, cfg.gap_limit_s, thresholds, _ROLL_BLOCK,
                                  _UNIT_ROUNDOFF, m <= _SMALL_WINDOWS)
         ok = codes == IN
         if n_unsure == 0 and to_cal is None:
@@ -688,7 +744,7 @@ def _window_flags(t: np.ndarray, x: np.ndarray, cfg: DetectorConfig, to_cal: ToC
             bad |= np.abs(np.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]) - 1.0) >= cfg.norm_tol_raw_g
         dt = np.diff(t)
         gap = np.zeros(n, dtype=bool)
-        gap[1:] = ~(dt > 0) | (dt > cfg.max_gap_s)  # NaN steps break too
+        gap[1:] = ~(dt > 0) | (dt > cfg.gap_limit_s)  # NaN steps break too
         if not (bad.any() or gap.any()):  # the usual still or clean stretch
             ok = np.ones(m, dtype=bool)
         else:  # integer counts per window: exact whatever the chunking
@@ -781,11 +837,11 @@ def _pieces_table(t: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray,
     if kernel is not None and lo.size:  # the same table in one call (selfcal.detect_numba)
         _, mean, sd, n, t_start, t_end, temp_mean, psd = kernel(
             np.asarray(t, dtype=np.float64), np.asarray(x, dtype=np.float64), np.asarray(lo, dtype=np.int64),
-            np.asarray(hi, dtype=np.int64), cfg.min_duration_s)
+            np.asarray(hi, dtype=np.int64), cfg.duration_floor_s)
         return StillWindows(mean_g=mean, sd_g=sd, n=n, t_start_s=t_start, t_end_s=t_end, temp_c=temp_mean,
                             pressure_sd_kpa=psd)
     keep = hi - lo >= 2
-    keep[keep] = t[hi[keep] - 1] - t[lo[keep]] >= cfg.min_duration_s
+    keep[keep] = t[hi[keep] - 1] - t[lo[keep]] >= cfg.duration_floor_s
     lo, hi = lo[keep], hi[keep]
     q = lo.size
     if q == 0:
@@ -903,6 +959,10 @@ def step(
     """
     if t_s.shape[0] == 0:
         return state, StillWindows()
+    held = state.pressure_kpa.shape[1] if state.t_s.shape[0] else state.n_pressure
+    if held is not None and pressure_kpa.shape[1] != held:  # (the numba kernel would read past them)
+        raise InputError(f"detector step: {pressure_kpa.shape[1]} pressure channels in the chunk, the state "
+                         f"holds {held}")
     if t_s.shape[0] > _STEP_SAMPLES:  # long chunks in cache-sized steps (same windows)
         parts = []
         for lo in range(0, t_s.shape[0], _STEP_SAMPLES):
@@ -1024,8 +1084,8 @@ def _step_in_one_call(kernel, state: DetectorState, t_s: np.ndarray, acc_g: np.n
         _plain(state.t_s), xb, _plain(t_s), _plain(acc_g), _plain(temp_c), _plain(pressure_kpa),
         state.buf_start, state.n_seen, bool(state.run_open),
         state.piece_start, state.last_end, cfg.window_samples, cfg.trim_samples, cfg.max_window_samples,
-        math.nan if cfg.clip_abs_g is None else cfg.clip_abs_g, cfg.norm_tol_raw_g, cfg.max_gap_s, thresholds,
-        lo_sd, hi_sd, _ROLL_BLOCK, _UNIT_ROUNDOFF, _SMALL_WINDOWS, cfg.min_duration_s)
+        math.nan if cfg.clip_abs_g is None else cfg.clip_abs_g, cfg.norm_tol_raw_g, cfg.gap_limit_s, thresholds,
+        lo_sd, hi_sd, _ROLL_BLOCK, _UNIT_ROUNDOFF, _SMALL_WINDOWS, cfg.duration_floor_s)
     new_state = _carried(n_seen, buf_start, t_keep, buf, run_open, piece_start, last_end)
     if not n.shape[0]:
         return new_state, StillWindows()

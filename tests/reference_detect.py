@@ -26,7 +26,10 @@ version). Every sliding window of ``Twait`` seconds
 * pressure (when given): every channel's sd over time ``<= pressure_sd_max_kpa``
   (the paper's condition 2, read as spread over time per channel);
 * all values finite, and no time step inside the window that is ``<= 0`` or
-  ``> max_gap_s`` (dropped rows within the tolerance do not break a window).
+  ``> max_gap_s`` (dropped rows within the tolerance do not break a window; steps and
+  durations are compared with ``max_gap_s`` and ``min_duration_s`` to within a
+  thousandth of a sample interval, so a step of whole intervals nominally on the
+  threshold is decided by this rule, not by the rounding of large times).
 
 A run of consecutive passing windows ``j = a..b`` covers the samples ``a..b+W-1``
 (every ``W``-sample stretch inside passes). ``trim_s`` is cut from both ends (the
@@ -477,7 +480,7 @@ def _window_flags(
             bad |= np.abs(np.sqrt((acc * acc).sum(axis=1)) - 1.0) >= cfg.norm_tol_raw_g
         dt = np.diff(t)
         gap = np.zeros(n, dtype=bool)
-        gap[1:] = ~(dt > 0) | (dt > cfg.max_gap_s)  # NaN steps break too
+        gap[1:] = ~(dt > 0) | (dt > cfg.max_gap_s + 1e-3 / cfg.rate_hz)  # NaN steps break too
     # Integer counts per window: exact whatever the chunking.
     cbad = np.concatenate(([0], np.cumsum(bad, dtype=np.int64)))
     cgap = np.concatenate(([0], np.cumsum(gap, dtype=np.int64)))
@@ -531,7 +534,7 @@ def _emit_pieces(
         else:
             break
         lo, hi = ps - g0, pe - g0 + 1
-        if t[hi - 1] - t[lo] >= cfg.min_duration_s and hi - lo >= 2:
+        if t[hi - 1] - t[lo] >= cfg.min_duration_s - 1e-3 / cfg.rate_hz and hi - lo >= 2:
             mu, sd, tc, psd = _piece_stats(t[lo:hi], acc[lo:hi], temp[lo:hi], pres[lo:hi])
             out.append((mu, sd, hi - lo, t[lo], t[hi - 1], tc, psd))
         ps = pe + 1

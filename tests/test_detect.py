@@ -314,6 +314,46 @@ def test_gaps_dropped_rows_and_nan_rows():
     assert len(run(DEFAULT, tb, a)) == 2
 
 
+@pytest.mark.parametrize("t0", [0.0, 1000.0, 1.7e9])
+def test_three_missing_samples_never_break_a_window_whatever_the_time_origin(t0):
+    """``max_gap_s`` = 0.2 s tolerates 3 missing samples at 20 Hz (docs/detector.md): a step
+    of 4 intervals is nominally 0.2 s, and whether its float value came out above 0.2
+    decided (59 % of such steps at t0 = 0, 80 % at 1.7e9 s: the same stream shifted in
+    time gave 3 windows or none). Steps are now compared to within a thousandth of an
+    interval; 4 missing samples still break."""
+    rng = np.random.default_rng(12)
+    n = 600
+    k = np.arange(n)
+    a = still(rng, n)
+    for dropped in (3, 4):
+        keep = (k % 10) < 10 - dropped
+        w = run(DEFAULT, (t0 + k / RATE)[keep], a[keep])
+        if dropped == 3:  # one still run of 420 samples: 412 after the trims, cut into 200 + 200 (+ 12: too short)
+            assert list(w.n) == [200, 200] and w.t_start_s[0] == t0 + 0.2
+        else:  # a step every 6 samples: nothing lasts a test window
+            assert len(w) == 0
+
+
+def test_a_piece_that_lasts_min_duration_s_is_kept_whatever_the_time_origin():
+    rng = np.random.default_rng(13)
+    cfg = DetectorConfig(min_duration_s=1.0, trim_s=0.2, twait_s=0.5)
+    n = 29  # 21 samples after the trims of 4, which last exactly 1.0 s ...
+    for start in np.r_[0.0, 1.7e9 + 0.05 * np.arange(40)]:  # ... at many time origins
+        w = run(cfg, start + np.arange(n) / RATE, still(rng, n))
+        assert len(w) == 1 and w.n[0] == 21
+
+
+@pytest.mark.parametrize("settings, word", [
+    ({"rate_hz": 4.0}, "0.25 s apart"),  # every step longer than max_gap_s: no window, ever
+    ({"rate_hz": 0.02}, "milliseconds"),  # t_s in ms reads as a sample every 50 s
+    ({"min_duration_s": 10.0}, "no window could be kept"),  # 200 samples last 9.95 s
+])
+def test_configs_that_could_never_keep_a_window_are_refused(settings, word):
+    with pytest.raises(InputError, match=word):
+        DetectorConfig.from_section(settings)
+    DetectorConfig.from_section({**settings, "rate_hz": 5.0, "max_window_s": 10.2})  # on the edges: allowed
+
+
 def test_pressure_condition_and_outputs():
     rng = np.random.default_rng(8)
     n = int(6 * RATE)
@@ -387,6 +427,48 @@ def test_state_dict_checks():
         StaticDetector.from_state(DEFAULT, {**d, "acc_g": "not base64!"})
     with pytest.raises(InputError, match="acc_g"):
         StaticDetector.from_state(DEFAULT, {**d, "acc_g": d["t_s"]})  # 30 values as 10 rows: lengths disagree
+
+
+@pytest.mark.parametrize("change, word", [
+    ({"piece_start": -10**8}, "open piece"),  # the numba kernel wrote outside its arrays (abort)
+    ({"piece_start": 10**6}, "open piece"),
+    ({"last_end": 10**6}, "last_end"),
+    ({"last_end": -5}, "last_end"),
+])
+def test_a_corrupt_state_is_refused_before_a_kernel_reads_it(change, word):
+    det = StaticDetector(DEFAULT)
+    rng = np.random.default_rng(14)
+    det.feed(np.arange(300) / RATE, still(rng, 300), pressure_kpa=np.ones((300, 4)))
+    d = json.loads(json.dumps(det.state_dict()))
+    assert d["run_open"]
+    with pytest.raises(InputError, match=word):
+        StaticDetector.from_state(DEFAULT, {**d, **change})
+    t = np.arange(300, 320) / RATE
+    StaticDetector.from_state(DEFAULT, d).feed(t, still(rng, 20), pressure_kpa=np.ones((20, 4)))  # intact: resumes
+
+
+def test_a_state_whose_buffer_is_shorter_than_the_test_window_is_refused():
+    from selfcal.detect import DetectorState, state_to_dict
+
+    det = StaticDetector(DEFAULT)
+    rng = np.random.default_rng(16)
+    moving = still(rng, 300) + rng.normal(0, 0.3, (300, 3))
+    det.feed(np.arange(300) / RATE, moving, pressure_kpa=np.ones((300, 4)))
+    st = det._state
+    assert not st.run_open and len(st.t_s) == DEFAULT.window_samples - 1
+    cut = DetectorState(n_seen=st.n_seen, buf_start=st.buf_start + 5, t_s=st.t_s[5:], acc_g=st.acc_g[5:],
+                        temp_c=st.temp_c[5:], pressure_kpa=st.pressure_kpa[5:], n_pressure=4)
+    with pytest.raises(InputError, match="buf_start"):
+        StaticDetector.from_state(DEFAULT, state_to_dict(cut, DEFAULT))
+
+
+def test_step_refuses_a_chunk_with_other_pressure_channels_than_its_state():
+    from selfcal.detect import DetectorState, step
+
+    rng = np.random.default_rng(15)
+    state, _ = step(DetectorState(), np.arange(40) / RATE, still(rng, 40), np.full(40, np.nan), np.ones((40, 1)), DEFAULT)
+    with pytest.raises(InputError, match="3 pressure channels in the chunk, the state holds 1"):
+        step(state, np.arange(40, 80) / RATE, still(rng, 40), np.full(40, np.nan), np.ones((40, 3)), DEFAULT)
 
 
 def test_a_version_1_state_with_lists_still_resumes_the_same():
