@@ -827,7 +827,9 @@ def create_app(
         else:
             metrics.inc("selfcal_ingest_batches_total")
             metrics.inc("selfcal_ingest_samples_total", batch.n)
-            worker.notify(device_id)
+        # a duplicate too: its first send may have been stored after its request timed out
+        # (503), so no one told the worker; a cycle with nothing pending costs one read
+        worker.notify(device_id)
         return _json({"device_id": device_id, "seq": batch.seq, "accepted": batch.n, "duplicate": result.duplicate})
 
     @app.get(

@@ -153,6 +153,11 @@ def refusals_of(events: list[dict[str, Any]], rejected: list[tuple[int, int, str
 #: The longest hold (s) before a device whose cycles keep failing is tried again.
 FAILURE_HOLD_MAX_S = 60.0
 
+#: The hold (s) before an embedded worker's cycle that met a concurrent change (an admin
+#: seed or rollback of the device) is tried again: its batches are still pending, and no
+#: new batch may come to have them fed.
+CONFLICT_HOLD_S = 0.5
+
 
 @dataclass(frozen=True)
 class LeaseConfig:
@@ -362,6 +367,8 @@ class RefitWorker:
                 more = False
                 if isinstance(exc, LeaseLost):  # not ours any more: no restore at its next batch
                     self._drop_lease(device_id)
+                elif self.lease is None:  # the only writer of its batches: they are fed after a short hold
+                    failed_hold_s = CONFLICT_HOLD_S
             except StorageUnavailable as exc:  # a storage fault: no traceback, wait it out
                 if backoff_s == 0.5:
                     log.warning("refits paused: %s", exc)

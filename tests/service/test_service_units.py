@@ -635,3 +635,103 @@ def test_a_device_whose_cycles_keep_failing_is_held_with_a_doubling_hold_and_sta
             shard.cond.notify_all()
         thread.join(10)
         store.close()
+
+
+@only_sqlite
+def test_a_batch_stored_after_its_request_timed_out_is_fed_once_it_is_resent(tmp_path):
+    """A write already running when ``write_timeout_s`` expires cannot be cancelled: the
+    client got a 503 and the batch was stored. Its resend was answered as a duplicate, which
+    told the worker nothing, so the embedded worker never fed it (nothing looks for pending
+    batches after start): the device's calibration stayed behind until its next batch."""
+    import threading
+    import time
+
+    from fastapi.testclient import TestClient
+    from service_helpers import KEY_SPEC, auth
+
+    from selfcal_service.main import create_app
+    from selfcal_service.sqlite_store import SQLiteStore
+
+    class SlowCommits(SQLiteStore):
+        slow_next = False
+
+        def submit_batch(self, *a, **k):
+            if not self.slow_next:
+                return super().submit_batch(*a, **k)
+            self.slow_next = False
+            gate = threading.Event()
+            self._submit(lambda conn: gate.wait(5))  # the writer busy: the batch and a slow op in one group
+            fut = super().submit_batch(*a, **k)
+            self._submit(lambda conn: time.sleep(1.0))  # a slow commit (an fsync on a busy disk)
+            gate.set()
+            return fut
+
+    db = str(tmp_path / "t.db")
+    store = SlowCommits(db)
+    settings = load_settings(None, environ={}, overrides={
+        "db_path": db, "api_keys": KEY_SPEC, "calibrator": "service_fakes:FakeCalibrator",
+        "write_timeout_s": 0.5, "gc_freeze": False})
+    app = create_app(settings, config={"fake": {"publish_after_samples": 30}}, store=store)
+
+    def post(client, seq):
+        rng = np.random.default_rng(seq)
+        body = Batch(seq=seq, t_s=seq + np.arange(20) / 20.0, acc_g=rng.normal([0, 0, 1], 0.002, (20, 3))).to_bytes()
+        return client.post("/devices/d1/samples", content=body,
+                           headers={**auth("ingest"), "Content-Type": "application/x-selfcal-batch"})
+
+    with TestClient(app) as client:
+        for seq in range(3):
+            assert post(client, seq).status_code == 200
+        store.slow_next = True
+        assert post(client, 3).status_code == 503  # ... and stored a second later
+        deadline = time.monotonic() + 10
+        while store.pending_batches("d1", 10) == [] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        resent = post(client, 3)
+        assert resent.status_code == 200 and resent.json()["duplicate"]
+        while time.monotonic() < deadline:
+            cal = client.get("/devices/d1/calibration", headers=auth("read")).json()
+            if cal["processed_seq"] == 3:
+                break
+            time.sleep(0.05)
+        assert cal["processed_seq"] == 3 and cal["samples_processed"] == 80
+
+
+@only_sqlite
+def test_an_embedded_cycle_dropped_on_a_conflict_is_tried_again(tmp_path):
+    """A cycle that met a concurrent change of its device was dropped, and the embedded
+    worker (the only one feeding the device) never came back to the batches it had left."""
+    import time
+
+    from fastapi.testclient import TestClient
+    from service_helpers import KEY_SPEC, auth
+
+    from selfcal_service.main import create_app
+    from selfcal_service.storage import ConflictError
+
+    db = str(tmp_path / "c.db")
+    settings = load_settings(None, environ={}, overrides={
+        "db_path": db, "api_keys": KEY_SPEC, "calibrator": "service_fakes:FakeCalibrator", "gc_freeze": False})
+    app = create_app(settings, config={"fake": {"publish_after_samples": 30}})
+    with TestClient(app) as client:
+        worker = app.state.worker
+        real, calls = worker.process, []
+
+        def conflicting_once(device_id):
+            calls.append(device_id)
+            if len(calls) == 1:
+                raise ConflictError(f"device {device_id}: changed while its calibrator was restored")
+            return real(device_id)
+
+        worker.process = conflicting_once
+        body = Batch(seq=0, t_s=np.arange(40) / 20.0, acc_g=np.tile([0.0, 0.0, 1.0], (40, 1))).to_bytes()
+        r = client.post("/devices/d1/samples", content=body,
+                        headers={**auth("ingest"), "Content-Type": "application/x-selfcal-batch"})
+        assert r.status_code == 200
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            cal = client.get("/devices/d1/calibration", headers=auth("read")).json()
+            if cal["processed_seq"] == 0:
+                break
+            time.sleep(0.05)
+        assert cal["processed_seq"] == 0 and len(calls) >= 2
