@@ -866,16 +866,25 @@ def fit_poses(
         raise InputError("fit: every initial value gives a non-finite cost (check the data)")
 
     weights = np.ones(len(raw_u))
+    scale = 1.0
     if robust:
         # Huber by iteratively reweighted LM (sigma_k / sqrt(w_k)); then the same with the
         # poses beyond reject_z skipped (weight ~0): a redescending end, so that a burst of
-        # coherent outliers cannot pull the estimate by its bounded Huber influence
+        # coherent outliers cannot pull the estimate by its bounded Huber influence. The
+        # thresholds apply to the residuals in units of a robust scale of them (never below
+        # the stated noise): poses that all scatter k times more than stated are not
+        # outliers, and down-weighting them as such had shrunk the chi-square that widens
+        # the covariance (a published sd k/c times too small). With few poses the scale is
+        # the stated noise's: a fit with barely more poses than parameters bends to an
+        # outlier, and the scale of its residuals then hid the outlier
         for skip in (False, True):
             for _ in range(cfg.irls_max):
                 z = best.fun / noise.sigma(best.x)
-                w_new = np.minimum(1.0, cfg.robust_c / np.maximum(np.abs(z), 1e-300))
+                scale = robust_scale(z) if len(z) >= max(ROBUST_SCALE_MIN_POSES, 3 * model.n_params) else 1.0
+                zs = z / scale
+                w_new = np.minimum(1.0, cfg.robust_c / np.maximum(np.abs(zs), 1e-300))
                 if skip:
-                    w_new = np.where(np.abs(z) > cfg.reject_z, 1e-12, w_new)
+                    w_new = np.where(np.abs(zs) > cfg.reject_z, 1e-12, w_new)
                 if np.max(np.abs(w_new - weights)) < 1e-3:
                     break
                 weights = w_new
@@ -887,7 +896,7 @@ def fit_poses(
     # uncertainty (sigma at the estimate)
     sigma = noise.sigma(best.x)
     z = best.fun / sigma
-    inlier = np.abs(z) <= cfg.reject_z if robust else np.ones(len(z), dtype=bool)
+    inlier = np.abs(z) <= cfg.reject_z * scale if robust else np.ones(len(z), dtype=bool)
     info_w = np.where(inlier, weights, 0.0)
     jw = best.jac / sigma[:, None] * np.sqrt(info_w)[:, None]
     rw = z * np.sqrt(info_w)
@@ -938,7 +947,7 @@ def fit_poses(
         message=best.message,
         initial_value=best_name,
         fit_ms=fit_ms,
-        extra={"starts_tried": tried, "weights": weights, "n_rejected": int((~inlier).sum())},
+        extra={"starts_tried": tried, "weights": weights, "n_rejected": int((~inlier).sum()), "robust_scale": scale},
         cells_u=(raw_u, temp, t_s),
         poses=poses,
     )
@@ -1039,6 +1048,21 @@ def _cluster_sandwich(jw: np.ndarray, rw: np.ndarray, clusters: np.ndarray, lam_
     return 0.5 * (out + out.T)
 
 
+#: Poses (and at least 3 per parameter) from which a robust fit measures the scale of its
+#: residuals (below: the stated noise's).
+ROBUST_SCALE_MIN_POSES = 30
+
+
+def robust_scale(z: np.ndarray) -> float:
+    """The spread of whitened residuals ``z`` (shape (n,)) in units of the stated noise,
+    robust to outliers: ``1.4826 * median |z|`` (1 for standard normal residuals), never
+    below 1 (the stated noise is a floor, not a guess to shrink)."""
+    if len(z) == 0:
+        return 1.0
+    s = 1.4826 * float(np.median(np.abs(z)))
+    return s if np.isfinite(s) and s > 1.0 else 1.0
+
+
 def _psd_max(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """A covariance at least as large as ``a`` and ``b`` in every direction: ``a + (b - a)_+``."""
     evals, evecs = np.linalg.eigh(b - a)
@@ -1054,15 +1078,20 @@ def variance_components(model: ErrorModel, fit: "FitResult", poses: PoseData, fl
     """Scale factors ``(c_floor, c_noise)`` of a pose's residual variance ``floor^2 + var_k``.
 
     Method of moments on the fit's residuals: ``r_k^2 / (1 - h_k)`` (``h_k`` the
-    leverage, so that poses the fit bends to do not look quiet) is regressed on
-    ``[floor^2, var_k]`` with weights ``1/sigma_k^4`` and non-negative coefficients,
-    then clipped to ``bounds`` (by default never below the model: conservative).
+    leverage, so that poses the fit bends to do not look quiet; from the covariance before
+    the fit widened it by its reduced chi-square, which had made every leverage that many
+    times too large) is regressed on ``[floor^2, var_k]`` with weights ``1/sigma_k^4`` and
+    coefficients within ``bounds`` (by default never below the model: conservative),
+    solved as one box-constrained problem (clipping each coefficient of an unconstrained
+    solution lost what it clipped: variance put on the noise term beyond its bound did
+    not go to the floor).
     ``var_k`` is each pose's noise variance as given (``sd^2 / count`` along gravity),
     ``floor_g`` the shared floor the fit added. Poses beyond ``reject_z`` (the fit's
-    ``FitConfig.reject_z``; its default when None) are left out.
+    ``FitConfig.reject_z``; its default when None) times the robust fit's scale of its
+    residuals are left out.
     Returns ``(1, 1)`` with fewer than ``min_poses`` poses.
     """
-    from scipy.optimize import nnls
+    from scipy.optimize import lsq_linear
 
     n = len(poses)
     if n < min_poses:
@@ -1076,15 +1105,17 @@ def variance_components(model: ErrorModel, fit: "FitResult", poses: PoseData, fl
     sig2 = var + f2
     r, jac = model.residual_jac(fit.theta_u, mean_u, poses.temp_c, poses.t_s)
     jw = jac / np.sqrt(sig2)[:, None]
-    h = np.einsum("ij,jk,ik->i", jw, fit.cov_u, jw)
-    keep = np.abs(r) / np.sqrt(sig2) <= (FitConfig().reject_z if reject_z is None else reject_z)
+    h = np.einsum("ij,jk,ik->i", jw, fit.cov_u / max(1.0, fit.chi2_red), jw)
+    limit = (FitConfig().reject_z if reject_z is None else reject_z) * fit.extra.get("robust_scale", 1.0)
+    keep = np.abs(r) / np.sqrt(sig2) <= limit
     if keep.sum() < min_poses:
         return 1.0, 1.0
     y = r[keep] ** 2 / np.clip(1.0 - h[keep], 0.05, 1.0)
     x = np.column_stack([np.full(int(keep.sum()), f2), var[keep]])
     w = 1.0 / sig2[keep]
-    coef, _ = nnls(x * w[:, None], y * w)
-    c0 = float(np.clip(coef[0], *bounds[0]))
+    lo, hi = np.array(bounds, dtype=float).T
+    coef = lsq_linear(x * w[:, None], y * w, bounds=(lo, hi), method="bvls").x
+    c0 = float(np.clip(coef[0], *bounds[0]))  # (the solver's own bounds, to the last bit)
     c1 = float(np.clip(coef[1], *bounds[1]))
     return c0, c1
 

@@ -182,3 +182,47 @@ def test_variance_components_leaves_out_poses_beyond_the_given_reject_z():
     assert default == variance_components(model, fit, poses, floor, reject_z=FitConfig().reject_z)
     tight = variance_components(model, fit, poses, floor, reject_z=3.0)
     assert tight != default
+
+
+@pytest.mark.parametrize("k", [1.0, 10.0])
+def test_a_robust_fit_of_poses_that_all_scatter_more_than_stated_widens_its_sd_as_a_plain_fit_does(k):
+    """Poses scattering k times their stated sd (an unmodelled error of each pose): the
+    Huber weights and the rejections treated most of them as outliers, and the reduced
+    chi-square that widens the covariance was taken over the down-weighted residuals, so
+    at k = 10 the published sd was 2.8 times too small (z rms 2.76). The thresholds now
+    apply in units of a robust scale of the residuals."""
+    from posegen import sphere_rms_mg
+
+    from selfcal.fit import predicted_sphere_rms_mg
+
+    z, ratio = [], []
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        truth = random_truth(rng)
+        p = poses_from_truth(rng, A9, truth, spread_directions(rng, 40), sample_sd_g=3e-3, count=200)
+        mean = p.mean + rng.normal(0, np.sqrt(k**2 - 1) * 3e-3 / np.sqrt(200), p.mean.shape)
+        res = fit_poses(A9, PoseData(mean, p.sd, p.count), cfg=FitConfig(sigma_floor_g=1e-4), robust=True)
+        z.append((res.params - truth) / res.std)
+        ratio.append(sphere_rms_mg(A9, res.theta_u, truth) / predicted_sphere_rms_mg(A9, res.theta_u, res.cov_u))
+    z_rms, ratio_rms = np.sqrt(np.mean(np.square(z))), np.sqrt(np.mean(np.square(ratio)))
+    assert 0.7 < z_rms < 1.3 and ratio_rms < 1.3, (z_rms, ratio_rms)
+
+
+def test_variance_components_give_an_unmodelled_error_to_the_floor_when_the_noise_term_is_at_its_bound():
+    """Clipping each coefficient of an unconstrained fit lost the variance it clipped: with
+    every pose's noise alike, all of it went to the noise term, which was cut to its bound
+    of 10, and an unmodelled 3 mg per pose read as 0.67 mg."""
+    from selfcal.fit import variance_components
+
+    floor = 1e-4
+    bounds = (((1e-5 / floor) ** 2, (1e-2 / floor) ** 2), (1.0, 10.0))  # the calibrator's
+    var_k = 3e-3**2 / 200
+    for seed, extra in ((1, 0.0), (1, 1e-3), (2, 3e-3)):
+        rng = np.random.default_rng(seed)
+        truth = random_truth(rng)
+        p = poses_from_truth(rng, A9, truth, spread_directions(rng, 200), sample_sd_g=3e-3, count=200)
+        data = PoseData(p.mean + rng.normal(0, extra, p.mean.shape), p.sd, p.count)
+        fit = fit_poses(A9, data, cfg=FitConfig(sigma_floor_g=floor), robust=True)
+        c0, c1 = variance_components(A9, fit, data, floor, bounds=bounds)
+        implied, actual = np.sqrt(c0 * floor**2 + c1 * var_k), np.sqrt(var_k + extra**2)
+        assert 0.8 * actual < implied < 1.25 * actual + 1e-5, (extra, c0, c1, implied, actual)
