@@ -85,6 +85,8 @@ STATE_FORMAT_VERSION = 2
 #: The smallest standard deviation a seeded (factory) calibration may give a parameter (g, or
 #: relative for scales): below it the prior's covariance is numerically singular.
 SEED_STD_MIN = 1e-7
+#: The largest (the service's bound): its square stays far from overflow in the prior.
+SEED_STD_MAX = 1e6
 
 
 class SchedulerConfig(BaseModel):
@@ -1045,6 +1047,9 @@ class OnlineCalibrator:
     def seed_calibration(self, params: dict[str, float], std: dict[str, float] | None = None, t_s: float = 0.0) -> None:
         """Install a factory calibration (params in g units) as the published model and the prior of later refits."""
         theta = self.model.from_dict(params)
+        bad = [n for n, v in zip(self.model.param_names, theta) if not np.isfinite(v)]
+        if bad:  # (a NaN parameter was installed: NaN predictions, every later refit refused)
+            raise InputError(f"params: {', '.join(bad)} not finite")
         sd = np.sqrt(np.diag(datasheet_prior(self.model, self.fit_cfg).cov))
         if std:
             unknown = sorted(set(std) - set(self.model.param_names))
@@ -1054,8 +1059,10 @@ class OnlineCalibrator:
             sd = np.array([float(std.get(n, s)) for n, s in zip(self.model.param_names, sd)])
         # a smaller sd squared underflows or makes the prior's covariance singular: every later
         # refit raised (LinAlgError) and the device's batches were all rejected
-        if np.any(~np.isfinite(sd)) or np.any(sd < SEED_STD_MIN):
-            raise InputError(f"std: every standard deviation must be finite and >= {SEED_STD_MIN:g}")
+        # a larger one squared overflows: the refits' eigen-decompositions then failed
+        if np.any(~np.isfinite(sd)) or np.any(sd < SEED_STD_MIN) or np.any(sd > SEED_STD_MAX):
+            raise InputError(f"std: every standard deviation must be finite, >= {SEED_STD_MIN:g} and "
+                             f"<= {SEED_STD_MAX:g}")
         cov = np.diag(sd**2)
         matrix, offset = self.model.linear(theta)
         det = self._determined(cov)

@@ -339,9 +339,11 @@ def test_a_seed_refuses_a_std_its_prior_cannot_hold_and_unknown_names():
     cal = OnlineCalibrator(load_config(), "affine9")
     params = {"bx": 0, "by": 0, "bz": 0, "sx": 1, "sy": 1, "sz": 1, "nxy": 0, "nxz": 0, "nyz": 0}
     for std, why in (({"bx": 1e-200}, "std: every standard deviation"), ({"bx": SEED_STD_MIN / 2}, "std: every"),
-                     ({"bogus": 0.1}, "std: unknown names")):
+                     ({"bogus": 0.1}, "std: unknown names"), ({"bx": 1e160}, "std: every")):
         with pytest.raises(InputError, match=why):
             cal.seed_calibration(params, std)
+    with pytest.raises(InputError, match="params: bx not finite"):  # NaN predictions, every refit refused
+        cal.seed_calibration({**params, "bx": float("nan")})
     cal.seed_calibration(params, {"bx": SEED_STD_MIN})
     assert cal.calibration()["std"]["bx"] == SEED_STD_MIN
 
