@@ -70,6 +70,9 @@ _NO_TEMP_BAND = 1023
 #: the first span of a cell's windows that the gate decides together when it redoes the
 #: cell in order (:meth:`PoseStore._gate_in_order`; later spans follow the windows passed)
 _GATE_SPAN = 32
+#: Coarsening passes a bound makes at most before it drops cells (a pass raises the older half
+#: of the cells that can be coarsened by one level; a cell has 15 levels to go at most).
+_BOUND_MAX_PASSES = 64
 #: A window with ``|mean|`` or a per-axis sd at or past this (g, normalised units) is no
 #: still pose (gravity is 1 g; sensors saturate at tens of g): a corrupt packet.
 _MAX_STILL_G = 1e3
@@ -405,7 +408,8 @@ class PoseStore:
         mean = mean_g
         k = mean.shape[0]
         temp = np.full(k, np.nan) if temp_c is None else temp_c
-        sd = np.full((k, 3), 3e-3) if sd_g is None else np.where(np.isfinite(sd_g), sd_g, 3e-3)
+        # a missing (NaN) sd is the default; an infinite one stays, and fails the size check below
+        sd = np.full((k, 3), 3e-3) if sd_g is None else np.where(np.isnan(sd_g), 3e-3, sd_g)
         with np.errstate(over="ignore", invalid="ignore"):
             norm = np.sqrt(np.einsum("ij,ij->i", mean, mean)) if k else np.zeros(0)
             # a window with |mean| or sd past _MAX_STILL_G is no still pose: stored, its huge
@@ -628,8 +632,13 @@ class PoseStore:
         step) or it is at the top level. Such cells do not count in the half: held at a
         barrier, they would fill it, and each pass would merge the few recent cells left
         in it, freeing room for about one new cell, so that every new cell after a step
-        paid a whole bound (a 45-day replay with a step took 92 s; 10 s now)."""
-        for _ in range(8):
+        paid a whole bound (a 45-day replay with a step took 92 s; 10 s now).
+
+        Passes go on while a cell can be coarsened (a new cell needs up to 15 to reach the
+        level of its group's oldest): after 8 passes, cells were dropped, the oldest first,
+        which were the largest (the top level, thousands of windows) even when every group
+        would have fitted in ``max_cells`` once merged."""
+        for _ in range(_BOUND_MAX_PASSES):
             if len(self) <= self.config.max_cells:
                 return
             can = self._level(self.key) < 15
@@ -796,7 +805,8 @@ class PoseStore:
 
     @classmethod
     def from_json(cls, d: dict) -> "PoseStore":
-        """Inverse of :meth:`to_json`."""
+        """Inverse of :meth:`to_json`; ValueError for a state whose per-cell fields disagree
+        (a late IndexError at the next add otherwise)."""
         obj = cls(
             PoseConfig(**d["config"]),
             np.asarray(d["key"], dtype=np.int64).reshape(-1),
@@ -806,5 +816,11 @@ class PoseStore:
             int(d["n_seen"]), int(d["n_gated"]), int(d["n_merged"]), int(d["n_dropped"]), d.get("t_origin"),
             [float(x) for x in d.get("barriers_s", [])],
         )
+        sizes = {len(obj.key), len(obj.stats), len(obj.t_first), len(obj.t_last)}
+        if len(sizes) != 1:
+            raise ValueError(f"pose store: its cells' fields disagree in length (key {len(obj.key)}, stats "
+                             f"{len(obj.stats)}, t_first {len(obj.t_first)}, t_last {len(obj.t_last)})")
+        if len(np.unique(obj.key)) != len(obj.key) or not np.all(np.isfinite(obj.stats)):
+            raise ValueError("pose store: duplicate cell keys or non-finite sums")
         obj._reindex()
         return obj

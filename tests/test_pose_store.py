@@ -375,3 +375,42 @@ def test_running_sums_are_those_of_adding_the_rows_one_at_a_time():
         got = _running_sums(start, rows, first)
         np.testing.assert_array_equal(got, want)
         assert not np.signbit(got[got == 0]).any()
+
+
+def test_the_bound_coarsens_until_every_group_fits_before_it_drops_a_window():
+    """15 directions, a bound of 16 cells: all of a month's windows fit once each direction's
+    cells are merged. The bound gave up after 8 coarsening passes (a new cell needs up to
+    15 to reach its group's oldest) and dropped the oldest cells, which were the largest:
+    134 of 4320 windows kept."""
+    from selfcal.poses import PoseConfig
+
+    for n_dirs in (10, 15):
+        rng = np.random.default_rng(0)
+        dirs = rng.standard_normal((n_dirs, 3))
+        dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+        k = 2 * 24 * 30  # a window every 30 min for 30 days
+        t = 1800.0 * np.arange(k)
+        mean = dirs[rng.integers(0, n_dirs, k)] * (1 + 1e-3 * rng.standard_normal((k, 1)))
+        store = PoseStore.empty(PoseConfig(max_cells=16))
+        for i in range(0, k, 240):
+            store.add(mean[i:i + 240], np.full((len(t[i:i + 240]), 3), 2e-3), 40.0, t[i:i + 240], 25.0)
+        assert store.n_dropped == 0 and int(store.stats[:, 0].sum()) == k and len(store) <= 16
+
+
+def test_a_window_with_an_infinite_sd_is_refused_not_stored_as_a_quiet_one():
+    for sd, added in ((np.inf, 0), (1e300, 0), (np.nan, 1), (3e-3, 1)):  # NaN: the default sd
+        out = PoseStore.empty().add([[0.0, 0.0, 1.0]], [[2e-3, 2e-3, sd]], [40], [0.0])
+        assert out["added"] == added, sd
+
+
+def test_a_saved_store_whose_cells_disagree_is_refused_at_load():
+    import pytest
+
+    store = PoseStore.empty()
+    store.add(np.tile([0.0, 0.0, 1.0], (3, 1)) + np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]]) * 0.7,
+              np.full((3, 3), 2e-3), 40.0, np.array([0.0, 10.0, 20.0]), 25.0)
+    state = store.to_json()
+    assert len(PoseStore.from_json(state)) == len(store) > 1
+    for broken in ({**state, "key": state["key"][:-1]}, {**state, "key": [state["key"][0]] * len(state["key"])}):
+        with pytest.raises(ValueError, match="pose store"):
+            PoseStore.from_json(broken)
