@@ -632,18 +632,23 @@ class _Demo:
                     and all(devs[i]["open_batch_samples"] == 0 for i in ids)
                     and s["spool_batches"] == 0)
 
-        deadline = time.monotonic() + 60.0
+        deadline = t0 + self.opts.timeout_s
         while True:
             stats = gw.stats()
             line, _ = self._line_drain(stats, "forwarding the last batches", t0)
             self.status.update(line, 1.0)
-            if gateway_done(stats) or time.monotonic() > deadline:
+            if gateway_done(stats):
                 break
+            if time.monotonic() > deadline:  # (they are not lost: the spool keeps them)
+                waiting = sum(max(sent[i] - stats["devices"].get(i, {}).get("samples_forwarded", 0), 0) for i in ids)
+                raise SelfcalError(
+                    f"the demo did not finish within {self.opts.timeout_s:.0f} s: {waiting:,} samples not yet "
+                    f"forwarded ({stats['spool_batches']} batches in the gateway's spool); this machine or the "
+                    "service is too slow for this --speed: lower it, or raise --timeout")
             await asyncio.sleep(0.2)
         await asyncio.sleep(0.3)  # let the forwarder's loop go idle before stopping it
         stats = gw.stats()
         forwarded = {i: stats["devices"].get(i, {}).get("samples_forwarded", 0) for i in ids}
-        deadline = time.monotonic() + 120.0
         while True:
             processed: dict[str, int] = {}
             pending = None
@@ -657,8 +662,13 @@ class _Demo:
             line, _ = self._line_drain(stats, f"service refits: {_fmt_int(sum(processed.values()))} "
                                               f"of {_fmt_int(sum(forwarded.values()))} samples fed", t0)
             self.status.update(line, 1.0)
-            if done or time.monotonic() > deadline:
+            if done:
                 break
+            if time.monotonic() > deadline:
+                behind = sum(max(forwarded[i] - processed[i], 0) for i in ids)
+                raise SelfcalError(
+                    f"the demo did not finish within {self.opts.timeout_s:.0f} s: the service has {behind:,} stored "
+                    "samples still to feed to its calibrators; lower --speed, or raise --timeout")
             await asyncio.sleep(0.25)
         self.status.close()
         return stats
@@ -744,6 +754,10 @@ class _Demo:
         }
 
 
+#: The whole run is cancelled this long (s) after ``--timeout`` if no loop of it noticed first.
+DEADLINE_MARGIN_S = 30.0
+
+
 def run_demo(opts: DemoOptions, stream: Any = None) -> dict[str, Any]:
     """Run the demo; returns the summary dict (the ``--json`` output).
 
@@ -757,11 +771,17 @@ def run_demo(opts: DemoOptions, stream: Any = None) -> dict[str, Any]:
     if not opts.verbose:
         for name, level in quiet.items():
             logging.getLogger(name).setLevel(level)
+    bumble_noise = _BumbleCallbackErrors()
+    if not opts.verbose:
+        logging.getLogger("asyncio").addFilter(bumble_noise)
     workdir = Path(tempfile.mkdtemp(prefix="selfcal-demo-"))
     demo: _Demo | None = None
+    old_term = _terminate_as_interrupt()
     try:
         demo = _Demo(opts, workdir, status)
-        return asyncio.run(demo.run())
+        # (a margin past the loops' own checks, whose messages say more: where it is behind)
+        return asyncio.run(within(demo.run(), opts.timeout_s + DEADLINE_MARGIN_S,
+                                  f"the demo did not finish within {opts.timeout_s:.0f} s (raise --timeout)"))
     finally:
         status.close()
         if demo is not None:
@@ -769,6 +789,47 @@ def run_demo(opts: DemoOptions, stream: Any = None) -> dict[str, Any]:
         shutil.rmtree(workdir, ignore_errors=True)
         for name, level in saved.items():
             logging.getLogger(name).setLevel(level)
+        logging.getLogger("asyncio").removeFilter(bumble_noise)
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+
+
+async def within(coro: Any, timeout_s: float, message: str) -> Any:
+    """Await ``coro``; SelfcalError(``message``) if it takes longer than ``timeout_s`` (s)
+    (it is cancelled): a stall anywhere in the run, not only where a loop checks the clock."""
+    try:
+        return await asyncio.wait_for(coro, timeout=timeout_s)
+    except asyncio.TimeoutError:
+        raise SelfcalError(message) from None
+
+
+def _terminate_as_interrupt() -> Any:
+    """SIGTERM handled as Ctrl-C (KeyboardInterrupt: the service stopped, the temporary folder
+    removed, exit 130); the previous handler, or None off the main thread."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def interrupt(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    return signal.signal(signal.SIGTERM, interrupt)
+
+
+class _BumbleCallbackErrors(logging.Filter):
+    """Drops asyncio's "Exception in callback" records raised inside bumble (its host's
+    packet handler sets results on futures its own timeouts cancelled: InvalidStateError),
+    which the virtual stack survives; shown with ``-v``."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        tb = exc.__traceback__ if exc is not None else None
+        while tb is not None:
+            if "/bumble/" in tb.tb_frame.f_code.co_filename.replace("\\", "/"):
+                return False
+            tb = tb.tb_next
+        return True
 
 
 def format_table(result: dict[str, Any]) -> str:

@@ -190,3 +190,53 @@ def test_the_demos_wear_through_the_codec_keeps_the_sphere_promise_of_every_vers
     for v in versions:
         s = scorer.score(v)
         assert s["true_mg"] <= PROMISE_RATIO * s["predicted_mg"] + PROMISE_SLACK_MG, (v["version"], v["status"], s)
+
+
+def test_a_stall_anywhere_in_the_demo_ends_at_its_deadline_with_a_clear_error():
+    """The deadline was checked only in the streaming loop: a run stalled before it (an
+    insole that never connected) ignored --timeout for 24 minutes."""
+    import asyncio
+
+    from selfcal.demo import within
+    from selfcal.errors import SelfcalError
+
+    async def stalled():
+        await asyncio.Event().wait()
+
+    t0 = time.monotonic()
+    with pytest.raises(SelfcalError, match="did not finish within"):
+        asyncio.run(within(stalled(), 0.2, "the demo did not finish within 0 s"))
+    assert time.monotonic() - t0 < 5.0
+
+
+def test_sigterm_ends_the_demo_as_ctrl_c_does():
+    import os
+    import signal
+
+    from selfcal.demo import _terminate_as_interrupt
+
+    old = _terminate_as_interrupt()
+    try:
+        with pytest.raises(KeyboardInterrupt):  # (the demo's finally: service stopped, folder removed)
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+def test_bumbles_own_callback_errors_are_hidden_and_no_other_is():
+    import logging
+
+    from selfcal.demo import _BumbleCallbackErrors
+
+    def record_of(filename: str) -> logging.LogRecord:
+        try:
+            exec(compile("raise RuntimeError('invalid state')", filename, "exec"))
+        except RuntimeError as exc:
+            info = (type(exc), exc, exc.__traceback__)
+        return logging.LogRecord("asyncio", logging.ERROR, "x", 1, "Exception in callback", None, info)
+
+    f = _BumbleCallbackErrors()
+    assert not f.filter(record_of("/venv/site-packages/bumble/host.py"))
+    assert f.filter(record_of("/work/selfcal/gateway/gateway.py"))
+    assert f.filter(logging.LogRecord("asyncio", logging.ERROR, "x", 1, "no exception", None, None))
