@@ -103,6 +103,10 @@ CASES = [
                                            d / "poses_copy.csv"], 2, "also an input"),
     ("two recordings of one name", lambda d: ["calibrate", POSES, d / "adir" / ".." / "poses.csv", "--out-dir",
                                               d / "adir"], 2, "same name"),
+    ("serve a database in a missing folder", lambda d: ["serve", "--db", d / "no" / "x.db", "--port", "0"], 2,
+     "does not exist"),  # (a traceback from the app's startup, exit 3)
+    ("serve a folder as the database", lambda d: ["serve", "--db", f"sqlite:///{d / 'adir'}", "--port", "0"], 2,
+     "is a folder"),
 ]
 
 

@@ -37,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
     import os
+    from pathlib import Path
 
     from selfcal.config import load_config, section
     from selfcal.errors import InputError
@@ -75,6 +76,14 @@ def run(args: argparse.Namespace) -> int:
     if not postgres and (args.workers > 1 or not settings.refit_in_process):
         raise InputError("--workers > 1 and --no-refit need a PostgreSQL database (--db postgresql://...): "
                          "a SQLite file has one writer process, which also runs the refits")
+    if not postgres:  # a folder that is not there: one line here, not a traceback from the app's startup
+        db_file = Path(settings.db_path.removeprefix("sqlite:///"))
+        if not db_file.parent.is_dir():
+            raise InputError(f"--db {settings.db_path}: the folder {db_file.parent} does not exist (create it first)")
+        if db_file.is_dir():
+            raise InputError(f"--db {settings.db_path}: is a folder; give a database file in it")
+        if not os.access(db_file.parent, os.W_OK):
+            raise InputError(f"--db {settings.db_path}: cannot write in {db_file.parent}")
     if postgres:
         try:
             import psycopg  # noqa: F401
@@ -110,7 +119,6 @@ def run(args: argparse.Namespace) -> int:
     # their metrics meet in a shared folder, so a scrape of any process counts them all
     import shutil
     import tempfile
-    from pathlib import Path
 
     shared = settings.metrics_dir or tempfile.mkdtemp(prefix="selfcal-metrics-")
     for old in Path(shared).glob("*.json"):  # counters start at zero with each start, as in one process
