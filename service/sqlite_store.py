@@ -272,9 +272,16 @@ class SQLiteStore(GroupCommitStore):
             raise RuntimeError(f"db_path {self.path}: could not enable WAL (got {mode})")
         has_meta = conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'meta'").fetchone()
         row = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone() if has_meta else None
-        if row is None:
-            conn.executescript(_SCHEMA)
-            conn.execute("INSERT OR REPLACE INTO meta(key, value) VALUES('schema_version', ?)", (str(SCHEMA_VERSION),))
+        if row is None:  # the schema and its version in one transaction: a first start that dies
+            # between them had left tables without a version, which the next start migrated
+            # again and failed on (the service then never started on that file)
+            try:
+                conn.executescript(f"BEGIN IMMEDIATE;\n{_SCHEMA}\nINSERT OR REPLACE INTO meta(key, value) "
+                                   f"VALUES('schema_version', '{SCHEMA_VERSION}');\nCOMMIT;")
+            except BaseException:
+                if conn.in_transaction:
+                    conn.execute("ROLLBACK")
+                raise
         else:
             version = int(row[0])
             if version > SCHEMA_VERSION:

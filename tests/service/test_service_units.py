@@ -735,3 +735,25 @@ def test_an_embedded_cycle_dropped_on_a_conflict_is_tried_again(tmp_path):
                 break
             time.sleep(0.05)
         assert cal["processed_seq"] == 0 and len(calls) >= 2
+
+
+@only_sqlite
+def test_a_first_start_that_fails_half_way_leaves_a_file_the_next_start_opens(tmp_path, monkeypatch):
+    """The schema ran in autocommit and its version was written after it: a first start that
+    died between the two left tables without a version, which every later start migrated
+    again and failed on (the service never started on that file)."""
+    import sqlite3
+
+    import selfcal_service.sqlite_store as sq
+
+    db = str(tmp_path / "half.db")
+    monkeypatch.setattr(sq, "_SCHEMA", sq._SCHEMA + "\nINSERT INTO no_such_table VALUES (1);\n")  # dies at its end
+    with pytest.raises(sqlite3.OperationalError):
+        sq.SQLiteStore(db).open()
+    monkeypatch.undo()
+    store = sq.SQLiteStore(db)
+    store.open()
+    try:
+        assert store.pending_devices() == []
+    finally:
+        store.close()
