@@ -926,7 +926,8 @@ def create_app(
             provenance={**old.provenance, "rollback_of": old.version, "replaced": current},
         )
         seed = {"params": old.calibration.get("params"), "std": old.calibration.get("std"),
-                "matrix": old.calibration.get("matrix"), "offset": old.calibration.get("offset")}
+                "matrix": old.calibration.get("matrix"), "offset": old.calibration.get("offset"),
+                "model": old.calibration.get("model")}
         await _admin_publish(worker, device_id, version, seed)
         dev, ver = await _current(store, device_id)
         return _model(calibration_out(device_id, dev, ver))

@@ -1076,10 +1076,15 @@ class RefitWorker:
         if seed is not None and hasattr(self.factory.cls, "seed_calibration"):
             cal = self._calibrator(rec) if rec else self.factory.create()
             params = seed.get("params")
+            std = {k: v for k, v in (seed.get("std") or {}).items() if v is not None}
+            if seed.get("model") not in (None, cal.model.name):
+                # a version published under another model (the calibrator switched since, e.g. it
+                # dropped an effect): its parameters do not fit this model, its correction does;
+                # the calibrator's prior is then its linear part (the version is served as it was)
+                params, std = None, {}
             if not params:
                 theta = cal.model.from_linear(np.asarray(seed["matrix"]), np.asarray(seed["offset"]))
                 params = cal.model.to_dict(theta)
-            std = {k: v for k, v in (seed.get("std") or {}).items() if v is not None}
             t_s = float((rec.feed_state.get("last_t_s") if rec else None) or 0.0)
             cal.seed_calibration(params, std or None, t_s=t_s)
             if version.source == "factory":

@@ -757,3 +757,35 @@ def test_a_first_start_that_fails_half_way_leaves_a_file_the_next_start_opens(tm
         assert store.pending_devices() == []
     finally:
         store.close()
+
+
+@only_sqlite
+def test_a_rollback_to_a_version_of_a_model_the_calibrator_has_left_is_served(tmp_path):
+    """Model selection can add an effect and drop it again: a rollback to a version published
+    under the effect passed its parameters (tbx, ...) to a calibrator back on affine9, a 422.
+    The version is served as it was, and the calibrator's prior is its linear part."""
+    from fastapi.testclient import TestClient
+    from service_helpers import KEY_SPEC, auth
+
+    from selfcal.config import load_config
+    from selfcal_service.main import create_app
+    from selfcal_service.storage import NewVersion, Progress
+
+    db = str(tmp_path / "r.db")
+    settings = load_settings(None, environ={}, overrides={
+        "db_path": db, "api_keys": KEY_SPEC, "calibrator": "selfcal.calibrator:OnlineCalibrator", "gc_freeze": False})
+    app = create_app(settings, config=load_config())
+    p9 = {"bx": 0.01, "by": 0.0, "bz": -0.02, "sx": 0.01, "sy": -0.01, "sz": 0.0, "nxy": 0.0, "nxz": 0.0, "nyz": 0.0}
+    matrix, offset = [[1.01, 0, 0], [0, 0.99, 0], [0, 0, 1.0]], [0.01, 0.0, -0.02]
+    with TestClient(app) as client:
+        with_effect = {"model": "affine9+temperature_bias", "params": {**p9, "tbx": 1e-4, "tby": 0.0, "tbz": -1e-4},
+                       "std": {k: 1e-3 for k in [*p9, "tbx", "tby", "tbz"]}, "matrix": matrix, "offset": offset,
+                       "status": "calibrated"}
+        app.state.store.commit_progress(Progress("d", None, None, 0, None, None, None, {}, [
+            NewVersion("calibrated", "refit", with_effect, {})])).result(10)  # v1, as a refit writes it
+        assert client.put("/devices/d/calibration", headers=auth("admin"),
+                          json={"matrix": matrix, "offset": offset}).status_code == 200  # v2, affine9
+        r = client.post("/devices/d/calibration/rollback", headers=auth("admin"), json={"to_version": 1})
+        assert r.status_code == 200, r.json()
+        assert r.json()["version"] == 3 and r.json()["model"] == "affine9+temperature_bias"
+        assert r.json()["params"]["tbz"] == -1e-4
