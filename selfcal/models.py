@@ -143,7 +143,8 @@ class ErrorModel:
         object.__setattr__(self, "name", "+".join((base,) + effects))
         if "bias_step" in effects and not np.isfinite(self.t_step_s):
             raise InputError("model: bias_step needs the time of the step (t_step_s); `selfcal diagnose` scans "
-                             "for it, and a calibrator answers a step by down-weighting what came before it")
+                             "for it, and the online calibrator finds a step at its model checks and fits the "
+                             "history before it jointly with the step's size (give a base model, e.g. affine9)")
 
     # ------------------------------------------------------------------ basics
     @property

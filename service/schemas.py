@@ -180,7 +180,7 @@ def check_batch(batch: Batch, *, max_samples: int, max_pressure_channels: int) -
         if (dt < 0).any():
             i = _first_bad(dt < 0) + 1
             raise FieldError(
-                f"t_s[{i}]", f"t_s must be non-decreasing: {batch.t_s[i]!r} < previous {batch.t_s[i - 1]!r}"
+                f"t_s[{i}]", f"t_s must be non-decreasing: {float(batch.t_s[i])!r} < previous {float(batch.t_s[i - 1])!r}"
             )
     for j, name in enumerate(("ax_g", "ay_g", "az_g")):
         _check_column(name, batch.acc_g[:, j], -ACC_LIMIT_G, ACC_LIMIT_G, "g")

@@ -118,6 +118,14 @@ def test_check_batch_names_first_bad_value(change, field):
     assert err.value.field == field
 
 
+def test_a_decreasing_time_is_named_with_plain_numbers():
+    b = _batch()
+    b.t_s[4] = b.t_s[3] - 0.05
+    with pytest.raises(FieldError, match=r"t_s must be non-decreasing: -?[0-9.e-]+ < previous [0-9.e-]+$") as err:
+        check_batch(b, max_samples=100, max_pressure_channels=16)
+    assert err.value.field == "t_s[4]" and "np." not in str(err.value)  # (numpy reprs: np.float64(0.15))
+
+
 def test_check_batch_limits():
     with pytest.raises(FieldError, match="limit of 10"):
         check_batch(_batch(n=11), max_samples=10, max_pressure_channels=16)
