@@ -776,6 +776,12 @@ def plain_columns(columns: str | list[str], unit: str | None = None) -> list[str
             out.append(f"a{low[-1]}_{unit}")
         else:
             out.append(n)
+    # the columns must name a time and three axes: the fault is the option's, not the file's line
+    missing = ([] if "t_s" in out else ["t (t_s)"]) + [
+        f"{a} (a{a}_g, a{a}_mps2 or a{a}_counts)" for a in "xyz"
+        if not any(re.fullmatch(rf"a{a}_(g|mps2|counts)", c) for c in out)]
+    if missing:
+        raise InputError(f"--columns {','.join(names)}: no column for {', '.join(missing)}")
     return out
 
 

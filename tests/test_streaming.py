@@ -121,6 +121,8 @@ def test_plain_csv_with_columns(tmp_path, capsys):
     bare.write_text(body + "\n")
     cols = plain_columns("t,x,y,z", "g")
     assert cols == ["t_s", "ax_g", "ay_g", "az_g"]
+    with pytest.raises(InputError, match=r"--columns t,x,y,w: no column for z"):  # (was: the file's line 3)
+        plain_columns("t,x,y,w", "g")
     a = np.concatenate([r.acc for r in iter_recording(with_header, 500, columns=cols)])
     b = np.concatenate([r.acc for r in iter_recording(bare, 500, columns=cols)])
     np.testing.assert_array_equal(a, b)
