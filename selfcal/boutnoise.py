@@ -543,7 +543,10 @@ def estimate_bout_noise(
         return out
     sums, counts, dt_bin = mom
     npair_bin = counts.sum(0)
-    keep = npair_bin > 0
+    keep = (npair_bin > 0) & (dt_bin > 0)
+    if not keep.any():  # every pair at one time (a pose table without times): nothing to fit a lag to
+        out.why = "every window pair at the same time: no lag to estimate a correlation over; independent noise"
+        return out
     taus = np.geomspace(max(dt_bin[keep].min(), 1e-3) / 3.0, 2.0 * dt_bin[keep].max(), 40)
 
     def fit(weights):  # weights: (R, n_bouts) -> white, ar, tau, C0, windows (each (R,))

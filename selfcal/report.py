@@ -132,7 +132,9 @@ def write_report(report: dict, out_dir: str | Path) -> Path:
         + (f" (ambiguous with {', '.join(report['ambiguous'])})" if report.get("ambiguous") else ""),
         "",
         f"Held-out RMS ({g['split']}): before {_fmt(g['heldout_rms_mg_before'])} mg → after "
-        f"{_fmt(g['heldout_rms_mg_after'])} mg ({g['n_fit']} poses fitted, {g['n_heldout']} held out).",
+        f"{_fmt(g['heldout_rms_mg_after'])} mg ("
+        + (f"{g['n_fit']} poses fitted, {g['n_heldout']} held out)." if g["n_fit"] is not None
+           else f"each of the {g['n_heldout']} poses held out once)."),
         "",
         "## Base model",
         "",

@@ -103,6 +103,8 @@ CASES = [
                                            d / "poses_copy.csv"], 2, "also an input"),
     ("two recordings of one name", lambda d: ["calibrate", POSES, d / "adir" / ".." / "poses.csv", "--out-dir",
                                               d / "adir"], 2, "same name"),
+    ("diagnose against a base with an effect", lambda d: ["diagnose", POSES, "--base-model",
+                                                          "affine9+temperature_bias"], 2, "without effects"),
     ("serve a database in a missing folder", lambda d: ["serve", "--db", d / "no" / "x.db", "--port", "0"], 2,
      "does not exist"),  # (a traceback from the app's startup, exit 3)
     ("serve a folder as the database", lambda d: ["serve", "--db", f"sqlite:///{d / 'adir'}", "--port", "0"], 2,
