@@ -298,8 +298,10 @@ def combine(fits: list[SoakFit]) -> dict | None:
     coef = cov @ weighted
     std = np.sqrt(np.diag(cov))
     conv = _display_scale(names)
+    corr = cov / np.outer(std, std)
     return {"coef": dict(zip(names, (coef * conv).round(6).tolist())),
             "std": dict(zip(names, (std * conv).round(6).tolist())),
+            "corr": {"names": list(names), "matrix": corr.round(6).tolist()},
             "determined": [n for n, s, p in zip(names, std, prior_sd) if s <= DETERMINED_RATIO * p],
             "n_soaks": len(fits)}
 
@@ -358,7 +360,12 @@ def soak_report(t_s: np.ndarray, mean_g: np.ndarray, var_g2: np.ndarray, temp_c:
         det = comb["determined"]
         cw = np.array([comb["coef"][n] for n in det])
         sd = np.array([comb["std"][n] for n in det])
-        chi2 = float(np.sum((cw / sd) ** 2))  # combined, determined terms (their correlations are small)
+        # combined, determined terms, with their correlations (two soaks 10 deg apart correlate tbx
+        # and tbz at -0.7: summing their squares alone gave 1.65 % false answers at a 1 % level)
+        pos = [comb["corr"]["names"].index(n) for n in det]
+        corr = np.asarray(comb["corr"]["matrix"])[np.ix_(pos, pos)]
+        z = cw / sd
+        chi2 = float(z @ np.linalg.solve(corr, z))
         terms = ", ".join(f"{n} {comb['coef'][n]:+.3f} ± {comb['std'][n]:.3f}" for n in det)
         if chi2 > float(chdtri(len(det), 0.01)):
             answer = f"{model}: {terms} ({'mg' if model == 'temperature_bias' else 'mg or ppm'}/degC, {len(runs)} soak(s) combined)"
