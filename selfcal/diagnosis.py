@@ -792,7 +792,8 @@ def diagnose_poses(
     # with few orientations cannot pin down.
     from selfcal.soak import soak_report
 
-    out["soaks"] = soak_report(data.t_s, data.u, window_mean_variance(data.u, sd, count, normalizer), data.temp_c)
+    out["soaks"] = soak_report(data.t_s, data.u, window_mean_variance(data.u, sd, count, normalizer), data.temp_c,
+                               _soak_config(config))  # ([soak] was read on the soaks-only path only)
     if arrays is not None:
         out["_arrays"] = arrays
     return out
@@ -819,16 +820,36 @@ def window_mean_variance(mean_u: np.ndarray, sd, count, normalizer) -> np.ndarra
     return sd_u**2 / count[:, None] + (0.3e-3) ** 2
 
 
+def _soak_config(config: dict | None):
+    """The ``[soak]`` section as a SoakConfig (None: the defaults); InputError naming a key it
+    does not have or a value of the wrong type."""
+    from dataclasses import fields
+
+    from selfcal.config import section
+    from selfcal.soak import SoakConfig
+
+    sec = section(config, "soak")
+    if not sec:
+        return None
+    known = {f.name: f.type for f in fields(SoakConfig)}
+    unknown = sorted(set(sec) - set(known))
+    if unknown:
+        raise InputError(f"config [soak]: unknown keys {unknown} (known: {sorted(known)})")
+    for k, v in sec.items():
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v < 0:
+            raise InputError(f"config [soak] {k} = {v!r}: expected a number >= 0")
+    return SoakConfig(**sec)
+
+
 def soak_only_report(mean, sd, count, t_s, temp_c, normalizer, config) -> dict:
     """The report for a recording with too few orientations for the base model (< 12 poses):
     the soaks it holds and what they determine, on the raw (normalised) means."""
-    from selfcal.config import section
-    from selfcal.soak import SoakConfig, soak_report
+    from selfcal.soak import soak_report
 
     normalizer = normalizer or Normalizer()
     u = normalizer.to_u(np.asarray(mean, float))
     soaks = soak_report(np.asarray(t_s, float), u, window_mean_variance(u, sd, count, normalizer), temp_c,
-                        SoakConfig(**section(config, "soak")) if section(config, "soak") else None)
+                        _soak_config(config))
     return {"kind": "soaks_only", "n_poses": int(len(u)),
             "why": f"{len(u)} poses: the base model needs 12 or more orientations; soaks need only one",
             # cause: an effect's name or None, as in every report (the answer's text is in "soaks")

@@ -284,3 +284,16 @@ def test_the_gain_of_a_named_bias_step_is_measured_where_a_step_can_be(seed):
     g = r["gain"]
     assert r["cause"] == "bias_step" and g["split"].startswith("pose cross-validation")
     assert g["heldout_rms_mg_after"] < 0.6 * g["heldout_rms_mg_before"], g
+
+
+def test_the_soak_section_of_the_config_is_read_by_the_whole_diagnosis():
+    """``[soak]`` was read on the soaks-only path only: a recording with 12 poses or more
+    was looked at with the default soak settings, whatever the config said."""
+    from selfcal.errors import InputError
+
+    p, _ = hidden_effect_case(np.random.default_rng(3), "temperature_bias", 0.3)
+    args = (p["mean"], p["sd"], p["count"], p["t_s"], p["temp_c"], None)
+    strict = diagnose_poses(*args, {"diagnose": {"n_sim": 2}, "soak": {"min_dtemp_c": 1e3}})
+    assert strict["soaks"]["answer"].startswith("no soak") and "1000 degC" in strict["soaks"]["answer"]
+    with pytest.raises(InputError, match=r"\[soak\]: unknown keys \['min_dtemp'\]"):
+        diagnose_poses(*args, {"diagnose": {"n_sim": 2}, "soak": {"min_dtemp": 5}})
