@@ -169,7 +169,7 @@ class DetectorConfig(BaseModel):
                 f"max_window_s ({self.max_window_s}) must be >= min_duration_s "
                 f"({self.min_duration_s})"
             )
-        if self.rate_hz * self.max_gap_s < 1.0:
+        if self.rate_hz * self.gap_limit_s < 1.0:  # (a step of one interval must pass, as in the detector)
             interval = 1.0 / self.rate_hz
             hint = " (are the times in milliseconds? t_s is in seconds)" if interval >= 1.0 else ""
             raise ValueError(

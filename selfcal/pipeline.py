@@ -111,6 +111,18 @@ def _detector_config(config: dict, rate_hz: float, loose_norm: bool) -> dict:
     return cfg
 
 
+def _poses_detector_config(config: dict, rate_hz: float) -> dict:
+    """The configuration for a poses table of windows taken at ``rate_hz``: the detector never
+    runs on it (its rate gives each window's duration), so ``max_gap_s`` is widened to two
+    intervals when a slower rate would have the detector's own checks refuse it."""
+    from selfcal.detect import DetectorConfig
+
+    cfg = _detector_config(config, rate_hz, False)
+    det = cfg["detector"]
+    det["max_gap_s"] = max(float(det.get("max_gap_s", DetectorConfig().max_gap_s)), 2.0 / rate_hz)
+    return cfg
+
+
 def _pressure_kpa(rec: Recording) -> np.ndarray | None:
     """Pressure in kPa when the recording has cells in a known unit, else None."""
     return rec.pressure_kpa() if rec.pressure is not None and rec.pressure_unit in ("kpa", "ncm2") else None
@@ -281,7 +293,7 @@ def calibrate_recording(
             rate = float(rec.meta.get("rate_hz", 0) or 0)
         except ValueError:
             rate = 0.0
-        cal = OnlineCalibrator(_detector_config(config, rate, False) if rate > 0 else config, model)
+        cal = OnlineCalibrator(_poses_detector_config(config, rate) if rate > 0 else config, model)
         sd_u = None if poses["sd"] is None else poses["sd"] / normalizer.scale
         events = cal.feed_poses(normalizer.to_u(poses["mean"]), sd_u, poses["count"], poses["t_s"], poses["temp_c"])
         events += cal.flush()

@@ -203,3 +203,16 @@ def test_still_windows_of_one_orientation_keep_the_rough_counts_scale():
                        rng.uniform([0, 0], [np.pi, 2 * np.pi], (50, 2))]) * 255.0 + [4.0, -2.0, 1.0]
     got, note = _counts_normalizer(tilted, rough)
     assert abs(got.scale - 255.0) < 0.5 and "sphere fit" in note
+
+
+def test_a_poses_table_taken_at_a_slow_rate_calibrates(tmp_path, capsys):
+    """The detector never runs on a poses table (its rate gives the windows' durations): the
+    detector's check of the rate against max_gap_s refused a 4 Hz table that calibrated before."""
+    from selfcal.cli import main
+
+    out = tmp_path / "p4.csv"
+    assert main(["simulate", "--days", "0.5", "--seed", "1", "--out", str(out), "--rate-hz", "4", "--kind", "poses"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(out), "--json"]) in (0, 1)  # (1: refused for the data, not for the rate)
+    captured = capsys.readouterr()
+    assert "max_gap_s" not in captured.err and captured.out.startswith("{")
