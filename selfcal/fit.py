@@ -1114,7 +1114,12 @@ def variance_components(model: ErrorModel, fit: "FitResult", poses: PoseData, fl
     x = np.column_stack([np.full(int(keep.sum()), f2), var[keep]])
     w = 1.0 / sig2[keep]
     lo, hi = np.array(bounds, dtype=float).T
-    coef = lsq_linear(x * w[:, None], y * w, bounds=(lo, hi), method="bvls").x
+    coef = lo.copy()  # a coefficient whose bounds meet is that value (the solver needs lo < hi)
+    free = lo < hi
+    if free.any():
+        a = x * w[:, None]
+        rhs = y * w - a[:, ~free] @ coef[~free]
+        coef[free] = lsq_linear(a[:, free], rhs, bounds=(lo[free], hi[free]), method="bvls").x
     c0 = float(np.clip(coef[0], *bounds[0]))  # (the solver's own bounds, to the last bit)
     c1 = float(np.clip(coef[1], *bounds[1]))
     return c0, c1

@@ -226,3 +226,17 @@ def test_variance_components_give_an_unmodelled_error_to_the_floor_when_the_nois
         c0, c1 = variance_components(A9, fit, data, floor, bounds=bounds)
         implied, actual = np.sqrt(c0 * floor**2 + c1 * var_k), np.sqrt(var_k + extra**2)
         assert 0.8 * actual < implied < 1.25 * actual + 1e-5, (extra, c0, c1, implied, actual)
+
+
+def test_variance_components_take_a_pinned_bound_as_that_value():
+    """A floor pinned by equal bounds (cell_floor_min_g = cell_floor_max_g) raised in every
+    refit once the solve became box-constrained (lsq_linear needs lower < upper)."""
+    from selfcal.fit import variance_components
+
+    rng = np.random.default_rng(5)
+    truth = random_truth(rng)
+    p = poses_from_truth(rng, A9, truth, spread_directions(rng, 60), sample_sd_g=3e-3, count=200)
+    fit = fit_poses(A9, p, cfg=FitConfig(sigma_floor_g=1e-4), robust=True)
+    for bounds in (((1.0, 1.0), (1.0, 10.0)), ((1.0, 400.0), (2.0, 2.0)), ((3.0, 3.0), (2.0, 2.0))):
+        c0, c1 = variance_components(A9, fit, p, 1e-4, bounds=bounds)
+        assert bounds[0][0] <= c0 <= bounds[0][1] and bounds[1][0] <= c1 <= bounds[1][1]
