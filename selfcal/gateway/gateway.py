@@ -152,6 +152,14 @@ class _DeviceState:
     open_since: float = 0.0
     journalled_n: int = 0  # the first open samples, already in the spool's journal
 
+    def append_open(self, counts: np.ndarray, acc_g: np.ndarray, pressure_kpa: np.ndarray, temp_c: np.ndarray) -> None:
+        """Add samples to the open batch: counts (n,), acc_g (n, 3) g, pressure_kpa (n, 4) kPa, temp_c (n,) degC."""
+        self.counts.append(counts)
+        self.acc.append(acc_g)
+        self.pressure.append(pressure_kpa)
+        self.temp.append(temp_c)
+        self.open_n += len(counts)
+
 
 @dataclass
 class _Link:
@@ -473,11 +481,8 @@ class Gateway:
         dev.samples_received += n
         if not dev.open_n:
             dev.open_since = time.monotonic()
-        dev.counts.append(np.arange(first, first + n, dtype=np.int64))
-        dev.acc.append(packet.acc_g)
-        dev.pressure.append(packet.pressure_kpa)
-        dev.temp.append(np.full(n, packet.temp_c))
-        dev.open_n += n
+        dev.append_open(np.arange(first, first + n, dtype=np.int64), packet.acc_g, packet.pressure_kpa,
+                        np.full(n, packet.temp_c))
         if dev.open_n >= self.config.batch_max_samples:
             self._close_batch(dev)
 
@@ -582,11 +587,7 @@ class Gateway:
                 if dev.open_n and part.sample_rate_hz != dev.sample_rate_hz:
                     self._close_batch(dev)
                 dev.sample_rate_hz = part.sample_rate_hz
-                dev.counts.append(part.counts)
-                dev.acc.append(part.acc_g)
-                dev.pressure.append(part.pressure_kpa)
-                dev.temp.append(part.temp_c)
-                dev.open_n += len(part.counts)
+                dev.append_open(part.counts, part.acc_g, part.pressure_kpa, part.temp_c)
                 dev.journalled_n = dev.open_n
                 dev.samples_recovered += len(part.counts)
             if dev.open_n:
