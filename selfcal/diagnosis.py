@@ -245,6 +245,8 @@ def _fit_converged(model: ErrorModel, data: _Data, cfg: FitConfig | None = None,
 
 
 def _heldout_rms(model: ErrorModel, theta_u, data: _Data, idx) -> float:
+    if not np.any(idx):  # nothing held out (every pose at one time): no RMS, and no numpy warning
+        return float("nan")
     r = model.residuals(theta_u, data.u[idx], None if data.temp_c is None else data.temp_c[idx], data.t_s[idx])
     return float(np.sqrt(np.mean(r**2)) * 1e3)
 
