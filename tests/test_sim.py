@@ -380,6 +380,23 @@ def test_poses_agree_with_the_samples_of_the_same_generator():
     assert np.median(np.abs(pitch)) < 10
 
 
+def test_the_window_temperatures_do_not_depend_on_the_block_they_are_computed_in(monkeypatch):
+    """poses() computes the windows' mean temperatures in blocks (their temporaries stay
+    small): any block size gives the table of one pass, bit for bit."""
+    cfg = SimConfig().with_effects(["temperature_bias", "temperature_scale"])
+    whole = Simulation(cfg, np.random.default_rng(8), days=2.0).poses()
+    assert len(whole) > Simulation.TEMPERATURE_BLOCK // 8
+    for block in (1, 7, 1000):
+        monkeypatch.setattr(Simulation, "TEMPERATURE_BLOCK", block)
+        part = Simulation(cfg, np.random.default_rng(8), days=2.0).poses()
+        for name in type(whole).__dataclass_fields__:
+            a, b = getattr(whole, name), getattr(part, name)
+            assert a.dtype == b.dtype and np.array_equal(a, b), (block, name)
+    monkeypatch.setattr(Simulation, "TEMPERATURE_BLOCK", 1 << 40)  # one block
+    one = Simulation(cfg, np.random.default_rng(8), days=2.0).poses()
+    assert np.array_equal(one.temp_true_c, whole.temp_true_c) and np.array_equal(one.mean_g, whole.mean_g)
+
+
 # ------------------------------------------------------------------ config and truth
 def test_config_validation_and_toml_defaults():
     from selfcal.config import load_config, section

@@ -342,21 +342,7 @@ class Simulation:
         w0, w1, period = w0[ok], w1[ok], period[ok]
         seg0 = st_seg[period]
         m = len(w0)
-        # mean true temperature: 9-point average over the window
-        frac = np.linspace(0.0, 1.0, 9)
-        pts = w0[:, None] + frac[None, :] * (w1 - w0 - 1)[:, None]
-        # nearly every window lies in one segment: its constants are gathered once and
-        # broadcast over the 9 points (the same values, elementwise the same arithmetic)
-        ends = np.searchsorted(s.start, pts[:, [0, -1]], side="right") - 1
-        one = ends[:, 0] == ends[:, 1]
-        temp_pts = np.empty(pts.shape)
-        for rows, segp in ((one, ends[one, :1]),
-                           (~one, np.searchsorted(s.start, pts[~one], side="right") - 1)):
-            tau = (pts[rows] - s.start[segp]) / rate
-            temp_pts[rows], _ = temperature_at(tau, s.temp0_c[segp], s.heat0_c[segp], s.temp_target_c[segp],
-                                               s.heat_target_c[segp], s.tau_t_s[segp], s.tau_h_s[segp],
-                                               s.on_foot[segp])
-        temp_true = temp_pts.mean(axis=1)
+        temp_true = self._window_temperature(w0, w1)
         t_start = w0 / rate
         dur = (w1 - w0) / rate
         t_mid = t_start + 0.5 * dur
@@ -388,6 +374,36 @@ class Simulation:
             activity=s.activity[seg0], noise_var_g2=var_mean,
         )
 
+
+    #: Windows whose mean temperature is computed at a time (:meth:`_window_temperature`):
+    #: its (k, 9) temporaries stay a few MB, which the allocator reuses from block to block.
+    #: Memory first touched costs more here than the arithmetic on it (a year of windows
+    #: at once made temporaries of ~230 MB each, most of the poses' time in page faults).
+    TEMPERATURE_BLOCK = 1 << 15
+
+    def _window_temperature(self, w0: np.ndarray, w1: np.ndarray) -> np.ndarray:
+        """Mean true temperature (degC, (m,)) of the windows of samples ``[w0, w1)``: the
+        9-point average over each window, computed in blocks of windows (every value is
+        a row's own, so the blocks give the values of one pass bit for bit)."""
+        s, rate = self.schedule, self.rate_hz
+        frac = np.linspace(0.0, 1.0, 9)
+        out = np.empty(len(w0))
+        for lo in range(0, len(w0), self.TEMPERATURE_BLOCK):
+            b0, b1 = w0[lo: lo + self.TEMPERATURE_BLOCK], w1[lo: lo + self.TEMPERATURE_BLOCK]
+            pts = b0[:, None] + frac[None, :] * (b1 - b0 - 1)[:, None]
+            # nearly every window lies in one segment: its constants are gathered once and
+            # broadcast over the 9 points (the same values, elementwise the same arithmetic)
+            ends = np.searchsorted(s.start, pts[:, [0, -1]], side="right") - 1
+            one = ends[:, 0] == ends[:, 1]
+            temp_pts = np.empty(pts.shape)
+            for rows, segp in ((one, ends[one, :1]),
+                               (~one, np.searchsorted(s.start, pts[~one], side="right") - 1)):
+                tau = (pts[rows] - s.start[segp]) / rate
+                temp_pts[rows], _ = temperature_at(tau, s.temp0_c[segp], s.heat0_c[segp], s.temp_target_c[segp],
+                                                   s.heat_target_c[segp], s.tau_t_s[segp], s.tau_h_s[segp],
+                                                   s.on_foot[segp])
+            out[lo: lo + len(b0)] = temp_pts.mean(axis=1)
+        return out
 
 def _positions(local_start: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Concatenated ``arange(local_start[i], local_start[i] + counts[i])``."""
