@@ -7,6 +7,15 @@ In one run, for each level (``poses``: the simulator's still windows; ``samples`
 throughput, the throughput per core, and the final accuracy (identical across engines
 for the same seeds). Progress goes to stderr.
 
+Every row is the steady state: numba's kernels are loaded in this process (and so in
+every forked pool process) before the first timed run, and a Dask cluster is started and
+its workers load them before its runs are timed. What a process pays once, at its start
+(imports, the kernels loaded from numba's cache and checked against the Python code, or
+compiled into an empty cache as after an install), and a Dask cluster's start, are rows of
+their own (``--no-startup`` skips them). A long-horizon row (``--long-days``, one device
+in this process, 365 days by default) gives the rate a fleet-year replay runs at, with its
+user and system CPU: memory touched for the first time costs system time here.
+
 Then, unless ``--no-stages``, where a samples-level device-day goes (one device, one
 process, the same seed): the simulator alone (the 20 Hz stream of every channel), the
 detector alone on that stream, and the random draws the stream cannot do without (three
@@ -48,6 +57,9 @@ def main(argv=None) -> int:
     ap.add_argument("--effects", default="", help="sensor effects on, comma-separated (e.g. bias_step)")
     ap.add_argument("--no-stages", action="store_true", help="skip the per-stage figures")
     ap.add_argument("--stage-days", type=float, default=2.0, help="days of the one device timed stage by stage")
+    ap.add_argument("--no-startup", action="store_true", help="skip the start-up rows (a fresh process, a cold cache)")
+    ap.add_argument("--long-days", type=float, default=365.0,
+                    help="days of the long-horizon row (one device, this process, poses level; 0: skip)")
     args = ap.parse_args(argv)
     cfg = load_config()
     effects = tuple(e for e in args.effects.split(",") if e)
@@ -57,14 +69,24 @@ def main(argv=None) -> int:
     print("| level | engine | workers | wall s | device-days/s | per core | final sphere RMS mg (median, max) |")
     print("|---|---|---:|---:|---:|---:|---|")
     reference: dict[str, list] = {}
+    warm_up()  # the rows below are the steady state; what a process pays once is timed apart
+    clusters: dict[int, tuple] = {}
+    startup_rows: list[tuple[str, float]] = []
     for level in args.levels.split(","):
         for spec in args.engines.split(","):
             engine, _, n = spec.partition(":")
             workers = int(n or 1)
+            scheduler = None
+            if engine == "dask":
+                if workers not in clusters:
+                    clusters[workers] = start_dask(workers)
+                    startup_rows.append((f"a local Dask cluster of {workers} workers started, its workers' kernels "
+                                         "loaded", clusters[workers][2]))
+                scheduler = clusters[workers][0].scheduler_address
             t0 = time.perf_counter()
             res = replay_fleet(args.devices, seed=args.seed, workers=workers, progress=True, engine=engine,
-                               days=args.days, refit_every_days=args.refit_every_days, config=cfg, level=level,
-                               effects=effects)
+                               scheduler=scheduler, days=args.days, refit_every_days=args.refit_every_days,
+                               config=cfg, level=level, effects=effects)
             wall = time.perf_counter() - t0
             final = np.array([r["refits"][-1]["sphere_norm_rms_mg"] for r in res])
             rate = args.devices * args.days / wall
@@ -75,9 +97,93 @@ def main(argv=None) -> int:
                 reference[level] = final
             print(f"| {level} | {engine} | {workers} | {wall:.1f} | {rate:.2f} | {rate / min(workers, os.cpu_count() or 1):.2f} "
                   f"| {np.median(final):.3f}, {final.max():.3f}{same} |", flush=True)
+    for cluster, client, _ in clusters.values():
+        client.close()
+        cluster.close()
+    if args.long_days > 0:
+        print_long(cfg, args.long_days, args.refit_every_days, args.seed)
+    if not args.no_startup:
+        print_startup(startup_rows)
     if not args.no_stages:
         print_stages(cfg, args.stage_days, args.seed)
     return 0
+
+
+def warm_up() -> None:
+    """Load (or compile into numba's cache) the simulator planner's and the detector's
+    kernels in this process, as a long run has them after its first seconds."""
+    from selfcal.detect_numba import kernels_now
+    from selfcal.sim import plan_numba
+
+    plan_numba.kernels()
+    kernels_now()
+
+
+def _load_kernels() -> bool:
+    """Run in each Dask worker: the kernels loaded there before a timed run."""
+    warm_up()
+    return True
+
+
+def start_dask(workers: int) -> tuple:
+    """``(cluster, client, seconds)``: a local cluster as ``replay_fleet`` makes one (single-
+    threaded workers, glibc's own trim policy), started and its workers' kernels loaded."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    t0 = time.perf_counter()
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": {}}):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                               silence_logs=40)
+    client = Client(cluster)
+    client.run(_load_kernels)
+    return cluster, client, time.perf_counter() - t0
+
+
+def print_long(cfg: dict, days: float, refit_every_days: float, seed: int) -> None:
+    """One device over a long horizon in this process (poses level): device-days/s, and its
+    user and system CPU (system: mostly memory touched for the first time)."""
+    import resource
+
+    from selfcal.replay import _replay_one
+
+    r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+    # as every engine runs a device (one BLAS thread)
+    res = _replay_one(dict(days=days, refit_every_days=refit_every_days, seed=seed, config=cfg, level="poses"))
+    wall, r1 = time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF)
+    print(f"\nlong horizon, one device (seed {seed}) x {days:g} days at the poses level, this process: "
+          f"{wall:.1f} s, {days / wall:.1f} device-days/s (CPU: user {r1.ru_utime - r0.ru_utime:.1f} s, "
+          f"system {r1.ru_stime - r0.ru_stime:.1f} s); final sphere RMS "
+          f"{res['refits'][-1]['sphere_norm_rms_mg']:.3f} mg", flush=True)
+
+
+_STARTUP = (
+    "import time; t0 = time.perf_counter(); import selfcal.replay; "
+    "from selfcal.sim import plan_numba; from selfcal.detect_numba import kernels_now; "
+    "plan_numba.kernels(); kernels_now(); print(time.perf_counter() - t0)"
+)
+
+
+def print_startup(rows: list[tuple[str, float]]) -> None:
+    """What a process pays once: a fresh interpreter's imports and kernels (from numba's
+    cache, and into an empty one), measured in subprocesses; and the rows measured above."""
+    import subprocess
+    import tempfile
+
+    def fresh(env_extra: dict) -> float:
+        env = dict(os.environ, **env_extra)
+        out = subprocess.run([sys.executable, "-c", _STARTUP], env=env, capture_output=True, text=True, check=True)
+        return float(out.stdout.strip().splitlines()[-1])
+
+    with tempfile.TemporaryDirectory() as cold:
+        measured = [("a fresh process: imports, the kernels loaded from numba's cache and checked", fresh({})),
+                    ("a fresh process with an empty numba cache (the first run after an install): the kernels "
+                     "compiled", fresh({"NUMBA_CACHE_DIR": cold}))]
+    print("\nstart-up, paid once per process (not in the rows above):\n")
+    print("| what | s |")
+    print("|---|---:|")
+    for name, sec in measured + rows:
+        print(f"| {name} | {sec:.1f} |", flush=True)
 
 
 def print_stages(cfg: dict, days: float, seed: int) -> None:
