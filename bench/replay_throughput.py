@@ -72,6 +72,7 @@ def main(argv=None) -> int:
     warm_up()  # the rows below are the steady state; what a process pays once is timed apart
     clusters: dict[int, tuple] = {}
     startup_rows: list[tuple[str, float]] = []
+    breakdown: dict[str, tuple] = {}
     for level in args.levels.split(","):
         for spec in args.engines.split(","):
             engine, _, n = spec.partition(":")
@@ -89,6 +90,8 @@ def main(argv=None) -> int:
                                config=cfg, level=level, effects=effects)
             wall = time.perf_counter() - t0
             final = np.array([r["refits"][-1]["sphere_norm_rms_mg"] for r in res])
+            if level not in breakdown:  # the level's first row: where its device-days went
+                breakdown[level] = (res, wall * min(workers, os.cpu_count() or 1))
             rate = args.devices * args.days / wall
             same = ""
             if level in reference:
@@ -97,6 +100,7 @@ def main(argv=None) -> int:
                 reference[level] = final
             print(f"| {level} | {engine} | {workers} | {wall:.1f} | {rate:.2f} | {rate / min(workers, os.cpu_count() or 1):.2f} "
                   f"| {np.median(final):.3f}, {final.max():.3f}{same} |", flush=True)
+    print_breakdown(breakdown, args.devices * args.days)
     for cluster, client, _ in clusters.values():
         client.close()
         cluster.close()
@@ -107,6 +111,24 @@ def main(argv=None) -> int:
     if not args.no_stages:
         print_stages(cfg, args.stage_days, args.seed)
     return 0
+
+
+def print_breakdown(breakdown: dict[str, tuple], device_days: float) -> None:
+    """Per level, the replays' own stage clocks (``stage_s`` of :func:`selfcal.replay.replay`)
+    summed over the devices of the level's first row, in ms per device-day."""
+    from selfcal.replay import StageClock
+
+    if not breakdown:
+        return
+    print("\nwhere a device-day goes (each level's first row, its devices summed; ms per device-day):\n")
+    print("| level | " + " | ".join(StageClock.STAGES) + " | other | all (wall x processes) |")
+    print("|---|" + "---:|" * (len(StageClock.STAGES) + 2))
+    for level, (res, cpu_s) in breakdown.items():
+        stages = {k: sum(r["stage_s"][k] for r in res) for k in StageClock.STAGES}
+        cells = [f"{1e3 * stages[k] / device_days:.1f}" for k in StageClock.STAGES]
+        other = cpu_s - sum(stages.values())
+        print(f"| {level} | " + " | ".join(cells) + f" | {1e3 * other / device_days:.1f} | "
+              f"{1e3 * cpu_s / device_days:.1f} |", flush=True)
 
 
 def warm_up() -> None:

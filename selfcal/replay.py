@@ -36,6 +36,7 @@ calibrate`` streams it, and every version it publishes is scored against the tru
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import os
@@ -104,6 +105,32 @@ class TruthMetrics:
         dpitch = pitch - self.pitch_ref
         tilt = float(np.sqrt(np.mean(np.concatenate([droll, dpitch]) ** 2)))
         return {"param_rel_error": float(np.mean(rel)), "sphere_norm_rms_mg": sphere, "tilt_error_deg": tilt}
+
+
+class StageClock:
+    """Wall time by stage of one replay (s): ``with clock("name"): ...`` adds the block's
+    time to ``name``. The stages of :func:`replay`: ``simulation`` (the plan, the still
+    windows, and at the samples level the 20 Hz stream), ``detector`` (the one detection
+    both calibrators share at the samples level), ``protocol`` (the protocol calibrator's
+    feeds and refits, its model checks included), ``as_shipped`` (the calibrator as shipped,
+    until it says ``calibrated``) and ``scores`` (the metrics against the truth)."""
+
+    STAGES = ("simulation", "detector", "protocol", "as_shipped", "scores")
+
+    def __init__(self):
+        self._s = dict.fromkeys(self.STAGES, 0.0)
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self._s[name] += time.perf_counter() - t0
+
+    def seconds(self) -> dict[str, float]:
+        """``{stage: s}``, every stage of :data:`STAGES`."""
+        return dict(self._s)
 
 
 def _protocol_config(config: dict, refit_every_days: float) -> dict:
@@ -230,9 +257,11 @@ def replay(
     sim_cfg = SimConfig.from_section(section(config, "sim"))
     if effects:
         sim_cfg = sim_cfg.with_effects(list(effects))
+    clock = StageClock()
     rng = np.random.default_rng(seed)
-    sim = Simulation(sim_cfg, rng, days=days, seed=seed)
-    poses = sim.poses()
+    with clock("simulation"):
+        sim = Simulation(sim_cfg, rng, days=days, seed=seed)
+        poses = sim.poses()
     cal_cfg = _protocol_config(config, refit_every_days)
     sd_max = float(section(cal_cfg, "detector").get("sd_max_g", 0.010))
     keep = np.all(poses.sd_g <= sd_max, axis=1)
@@ -250,7 +279,8 @@ def replay(
             keep[keep_idx[run]] = False
         soak_info.update(n_soaks=len(runs), n_windows=int(sum(r.stop - r.start for r in runs)))
     poses = PoseTable(**{k: getattr(poses, k)[keep] for k in PoseTable.__dataclass_fields__})
-    metrics = TruthMetrics(sim, poses)
+    with clock("scores"):
+        metrics = TruthMetrics(sim, poses)
     init_rng = np.random.default_rng([seed, 1])
     theta0 = init_rng.uniform(0.0, 1.0, ErrorModel(model).n_params) if random_init else None
     cal = OnlineCalibrator(cal_cfg, model, initial_params_u=theta0)
@@ -301,13 +331,19 @@ def replay(
         if level == "poses":
             args = (poses.mean_g[sel], poses.sd_g[sel], poses.n[sel], poses.t_s[sel] + poses.duration_s[sel] / 2,
                     poses.temp_c[sel])
-            events = cal.feed_poses(*args)
+            with clock("protocol"):
+                events = cal.feed_poses(*args)
             if first_calibrated_h is None:  # the as-shipped calibrator is only timed to 'calibrated'
-                first_calibrated_h = first_calibrated_h_of(online, *args)
+                with clock("as_shipped"):
+                    first_calibrated_h = first_calibrated_h_of(online, *args)
         else:
             events = []
             while True:
-                chunk = pending or next(sample_iter, None)
+                if pending:
+                    chunk = pending
+                else:
+                    with clock("simulation"):
+                        chunk = next(sample_iter, None)
                 pending = None
                 if chunk is None:
                     break
@@ -323,27 +359,35 @@ def replay(
                 if first_calibrated_h is None and shared_detector:
                     # one detection for both calibrators (the same [detector] settings): the
                     # as-shipped one gets the protocol calibrator's windows
-                    windows = cal.detector.feed(chunk.t_s, chunk.acc_g, temp_c=chunk.temp_c,
-                                                pressure_kpa=chunk.pressure_kpa, to_cal=None)
-                    events += cal.feed_windows(windows, len(chunk.t_s))
-                    online.feed_windows(windows, len(chunk.t_s))
-                else:
-                    events += cal.feed_samples(chunk.t_s, chunk.acc_g, chunk.temp_c, chunk.pressure_kpa)
+                    with clock("detector"):
+                        windows = cal.detector.feed(chunk.t_s, chunk.acc_g, temp_c=chunk.temp_c,
+                                                    pressure_kpa=chunk.pressure_kpa, to_cal=None)
+                    with clock("protocol"):
+                        events += cal.feed_windows(windows, len(chunk.t_s))
+                    with clock("as_shipped"):
+                        online.feed_windows(windows, len(chunk.t_s))
+                else:  # each calibrator's own detector (its time is in that calibrator's)
+                    with clock("protocol"):
+                        events += cal.feed_samples(chunk.t_s, chunk.acc_g, chunk.temp_c, chunk.pressure_kpa)
                     if first_calibrated_h is None:
-                        online.feed_samples(chunk.t_s, chunk.acc_g, chunk.temp_c, chunk.pressure_kpa)
+                        with clock("as_shipped"):
+                            online.feed_samples(chunk.t_s, chunk.acc_g, chunk.temp_c, chunk.pressure_kpa)
                 if first_calibrated_h is None and online.status == "calibrated":
                     first_calibrated_h = float(chunk.t_s[-1]) / 3600.0
                 if pending is not None:  # the period ends inside this chunk
                     break
         cal.t_last_s = hi
         if refit_every_days > 0:
-            events = [cal.refit()]
+            with clock("protocol"):
+                events = [cal.refit()]
         for ev in events:
             if ev["published"]:  # the effect terms as published at this event (rows' other metrics: period end)
                 last_cal = ev["calibration"]
             cur = cal.current
             theta = np.asarray(cur["theta_u"]) if cur else start_theta
-            row = dict(day=float(ev["t_s"] / SECONDS_PER_DAY), **metrics(cal.model, theta, ev["t_s"]),
+            with clock("scores"):
+                scores = metrics(cal.model, theta, ev["t_s"])
+            row = dict(day=float(ev["t_s"] / SECONDS_PER_DAY), **scores,
                        n_poses=len(cal.buffer), fit_ms=ev.get("fit_ms"), status=cal.status,
                        published=ev["published"], reason=ev["reason"], mode=ev.get("mode"),
                        effect_terms=_effect_terms(last_cal, base_name), model=(last_cal or {}).get("model", model))
@@ -376,6 +420,7 @@ def replay(
         "time_to_calibrated_h": first_calibrated_h,
         "n_still_windows": int(len(poses)),
         "wall_s": time.perf_counter() - t0_wall,
+        "stage_s": clock.seconds(),
         "truth": {"params": truth.params(), "effects": truth.model_params(),
                   "bias_step": None if not np.isfinite(truth.step_at_s) else {
                       "t_s": truth.step_at_s, "day": truth.step_at_s / SECONDS_PER_DAY,
