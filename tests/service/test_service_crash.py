@@ -63,9 +63,15 @@ def test_kill9_mid_ingest_loses_nothing_acknowledged_and_counts_nothing_twice(tm
     for g in gateways:
         g.start()
     kills = 0
+    total = N_BATCHES * len(DEVICES)
     try:
-        for _ in range(3):
-            time.sleep(float(rng.uniform(0.3, 0.9)))
+        # three kills at random moments of the ingest, as fractions of the batches acknowledged
+        # (a fixed 0.3-0.9 s sleep found the ingest already over on a fast machine: no kill)
+        for frac in np.sort(rng.uniform(0.1, 0.9, 3)):
+            deadline = time.monotonic() + 120
+            while sum(len(g.acked) for g in gateways) < frac * total and any(g.is_alive() for g in gateways):
+                assert time.monotonic() < deadline, "the ingest stalled"
+                time.sleep(0.002)
             if not any(g.is_alive() for g in gateways):
                 break
             kill_time = time.monotonic()
