@@ -12,7 +12,9 @@ every forked pool process) before the first timed run, and a Dask cluster is sta
 its workers load them before its runs are timed. What a process pays once, at its start
 (imports, the kernels loaded from numba's cache and checked against the Python code, or
 compiled into an empty cache as after an install), and a Dask cluster's start, are rows of
-their own (``--no-startup`` skips them). A long-horizon row (``--long-days``, one device
+their own (``--no-startup`` skips them). With the kernels loaded, a plan shorter than 10
+days uses them too, where a fresh ``selfcal replay`` plans it in Python (the same plan,
+bit for bit; ``selfcal.sim.plan_numba.LOAD_FOR_DAYS``). A long-horizon row (``--long-days``, one device
 in this process, 365 days by default) gives the rate a fleet-year replay runs at, with its
 user and system CPU: memory touched for the first time costs system time here.
 
@@ -73,6 +75,26 @@ def main(argv=None) -> int:
     clusters: dict[int, tuple] = {}
     startup_rows: list[tuple[str, float]] = []
     breakdown: dict[str, tuple] = {}
+    try:
+        run_rows(args, cfg, effects, reference, clusters, startup_rows, breakdown)
+    finally:
+        for cluster, client, _ in clusters.values():
+            client.close()
+            cluster.close()
+    print_breakdown(breakdown, args.devices * args.days)
+    if args.long_days > 0:
+        print_long(cfg, args.long_days, args.refit_every_days, args.seed, effects)
+    if not args.no_startup:
+        print_startup(startup_rows)
+    if not args.no_stages:
+        print_stages(cfg, args.stage_days, args.seed)
+    return 0
+
+
+def run_rows(args, cfg: dict, effects: tuple, reference: dict, clusters: dict, startup_rows: list,
+             breakdown: dict) -> None:
+    """The table's rows, one per level and engine (a Dask cluster of each size is started
+    once, into ``clusters``, and closed by the caller)."""
     for level in args.levels.split(","):
         for spec in args.engines.split(","):
             engine, _, n = spec.partition(":")
@@ -90,8 +112,11 @@ def main(argv=None) -> int:
                                config=cfg, level=level, effects=effects)
             wall = time.perf_counter() - t0
             final = np.array([r["refits"][-1]["sphere_norm_rms_mg"] for r in res])
-            if level not in breakdown:  # the level's first row: where its device-days went
-                breakdown[level] = (res, wall * min(workers, os.cpu_count() or 1))
+            if level not in breakdown and engine == "processes" and workers <= 1:
+                # where its device-days went: a row run in this process, one device after the
+                # other (with several processes, each stage's wall time would count the waits
+                # for a core, and an idle process none)
+                breakdown[level] = (res, wall)
             rate = args.devices * args.days / wall
             same = ""
             if level in reference:
@@ -100,35 +125,26 @@ def main(argv=None) -> int:
                 reference[level] = final
             print(f"| {level} | {engine} | {workers} | {wall:.1f} | {rate:.2f} | {rate / min(workers, os.cpu_count() or 1):.2f} "
                   f"| {np.median(final):.3f}, {final.max():.3f}{same} |", flush=True)
-    print_breakdown(breakdown, args.devices * args.days)
-    for cluster, client, _ in clusters.values():
-        client.close()
-        cluster.close()
-    if args.long_days > 0:
-        print_long(cfg, args.long_days, args.refit_every_days, args.seed)
-    if not args.no_startup:
-        print_startup(startup_rows)
-    if not args.no_stages:
-        print_stages(cfg, args.stage_days, args.seed)
-    return 0
 
 
 def print_breakdown(breakdown: dict[str, tuple], device_days: float) -> None:
     """Per level, the replays' own stage clocks (``stage_s`` of :func:`selfcal.replay.replay`)
-    summed over the devices of the level's first row, in ms per device-day."""
+    summed over the devices of the level's ``processes:1`` row (run in this process, one
+    device after the other), in ms per device-day."""
     from selfcal.replay import StageClock
 
     if not breakdown:
+        print("\n(no processes:1 row: where a device-day goes is measured on one)")
         return
-    print("\nwhere a device-day goes (each level's first row, its devices summed; ms per device-day):\n")
-    print("| level | " + " | ".join(StageClock.STAGES) + " | other | all (wall x processes) |")
+    print("\nwhere a device-day goes (each level's processes:1 row, its devices summed; ms per device-day):\n")
+    print("| level | " + " | ".join(StageClock.STAGES) + " | other | all (wall) |")
     print("|---|" + "---:|" * (len(StageClock.STAGES) + 2))
-    for level, (res, cpu_s) in breakdown.items():
+    for level, (res, wall) in breakdown.items():
         stages = {k: sum(r["stage_s"][k] for r in res) for k in StageClock.STAGES}
         cells = [f"{1e3 * stages[k] / device_days:.1f}" for k in StageClock.STAGES]
-        other = cpu_s - sum(stages.values())
+        other = wall - sum(stages.values())
         print(f"| {level} | " + " | ".join(cells) + f" | {1e3 * other / device_days:.1f} | "
-              f"{1e3 * cpu_s / device_days:.1f} |", flush=True)
+              f"{1e3 * wall / device_days:.1f} |", flush=True)
 
 
 def warm_up() -> None:
@@ -162,7 +178,7 @@ def start_dask(workers: int) -> tuple:
     return cluster, client, time.perf_counter() - t0
 
 
-def print_long(cfg: dict, days: float, refit_every_days: float, seed: int) -> None:
+def print_long(cfg: dict, days: float, refit_every_days: float, seed: int, effects: tuple = ()) -> None:
     """One device over a long horizon in this process (poses level): device-days/s, and its
     user and system CPU (system: mostly memory touched for the first time)."""
     import resource
@@ -171,7 +187,8 @@ def print_long(cfg: dict, days: float, refit_every_days: float, seed: int) -> No
 
     r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
     # as every engine runs a device (one BLAS thread)
-    res = _replay_one(dict(days=days, refit_every_days=refit_every_days, seed=seed, config=cfg, level="poses"))
+    res = _replay_one(dict(days=days, refit_every_days=refit_every_days, seed=seed, config=cfg, level="poses",
+                           effects=effects))
     wall, r1 = time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF)
     print(f"\nlong horizon, one device (seed {seed}) x {days:g} days at the poses level, this process: "
           f"{wall:.1f} s, {days / wall:.1f} device-days/s (CPU: user {r1.ru_utime - r0.ru_utime:.1f} s, "
@@ -194,8 +211,13 @@ def print_startup(rows: list[tuple[str, float]]) -> None:
 
     def fresh(env_extra: dict) -> float:
         env = dict(os.environ, **env_extra)
-        out = subprocess.run([sys.executable, "-c", _STARTUP], env=env, capture_output=True, text=True, check=True)
+        out = subprocess.run([sys.executable, "-c", _STARTUP], env=env, capture_output=True, text=True)
+        if out.returncode != 0:
+            raise SystemExit(f"the start-up measurement failed:\n{out.stderr}")
         return float(out.stdout.strip().splitlines()[-1])
+
+    if os.environ.get("SELFCAL_NUMBA", "").strip() == "0":
+        print("\n(SELFCAL_NUMBA=0: the start-up rows below are the imports alone, no kernel is loaded)")
 
     with tempfile.TemporaryDirectory() as cold:
         measured = [("a fresh process: imports, the kernels loaded from numba's cache and checked", fresh({})),

@@ -113,7 +113,10 @@ class StageClock:
     windows, and at the samples level the 20 Hz stream), ``detector`` (the one detection
     both calibrators share at the samples level), ``protocol`` (the protocol calibrator's
     feeds and refits, its model checks included), ``as_shipped`` (the calibrator as shipped,
-    until it says ``calibrated``) and ``scores`` (the metrics against the truth)."""
+    until it says ``calibrated``) and ``scores`` (the metrics against the truth). Wall
+    time: a process that waits for a core counts the wait in the stage it is in. The
+    stages start with the simulation, and the result's ``wall_s`` after it (and after the
+    truth's scorer is built), so the stages can add up to more than ``wall_s``."""
 
     STAGES = ("simulation", "detector", "protocol", "as_shipped", "scores")
 
@@ -541,7 +544,8 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
     ``distributed`` cluster: the one at ``scheduler`` address, else a local cluster of
     ``workers`` single-threaded worker processes) or ``ray`` (``ray.init(address=scheduler)``).
     Each device's replay is the same function with the same seed on every engine, so
-    the results are identical (only ``wall_s`` differs). Returns the results in seed
+    the results are identical (only the wall times ``wall_s``, ``stage_s`` and
+    ``fit_ms`` differ). Returns the results in seed
     order; the progress bar (stderr) counts devices and shows the ETA.
     """
     check_engine(engine)

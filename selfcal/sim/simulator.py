@@ -374,7 +374,6 @@ class Simulation:
             activity=s.activity[seg0], noise_var_g2=var_mean,
         )
 
-
     #: Windows whose mean temperature is computed at a time (:meth:`_window_temperature`):
     #: its (k, 9) temporaries stay a few MB, which the allocator reuses from block to block.
     #: Memory first touched costs more here than the arithmetic on it (a year of windows
@@ -404,6 +403,7 @@ class Simulation:
                                                    s.on_foot[segp])
             out[lo: lo + len(b0)] = temp_pts.mean(axis=1)
         return out
+
 
 def _positions(local_start: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Concatenated ``arange(local_start[i], local_start[i] + counts[i])``."""
