@@ -157,24 +157,17 @@ def warm_up() -> None:
     kernels_now()
 
 
-def _load_kernels() -> bool:
-    """Run in each Dask worker: the kernels loaded there before a timed run."""
-    warm_up()
-    return True
-
-
 def start_dask(workers: int) -> tuple:
-    """``(cluster, client, seconds)``: a local cluster as ``replay_fleet`` makes one (single-
-    threaded workers, glibc's own trim policy), started and its workers' kernels loaded."""
-    import dask
-    from distributed import Client, LocalCluster
+    """``(cluster, client, seconds)``: the local cluster ``replay_fleet`` makes, started and
+    its workers' kernels loaded."""
+    from distributed import Client
+
+    from selfcal.replay import local_dask_cluster
 
     t0 = time.perf_counter()
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": {}}):
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=40)
+    cluster = local_dask_cluster(workers)
     client = Client(cluster)
-    client.run(_load_kernels)
+    client.run(warm_up)
     return cluster, client, time.perf_counter() - t0
 
 

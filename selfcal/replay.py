@@ -601,23 +601,15 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
 def _run_dask(jobs: list[dict], workers: int, scheduler: str | None, done) -> None:
     """Run the jobs on a Dask ``distributed`` cluster (a local one unless ``scheduler`` is given)."""
     try:
-        from distributed import Client, LocalCluster, as_completed
+        from distributed import Client, as_completed
     except ImportError:
         raise InputError("--engine dask needs dask's distributed scheduler "
                          "(pip install 'selfcal[fleet]')") from None
     cluster = None
     if scheduler:
         client = Client(scheduler)
-    else:  # one single-threaded worker process per core: the replay is CPU-bound Python
-        import dask
-
-        # Dask's nannies set MALLOC_TRIM_THRESHOLD_=65536 in their workers by default; glibc
-        # then returns freed memory at once, and the replay's many numpy temporaries cost
-        # mmap/munmap each: 1.5x slower per device, measured. Workers keep glibc's own policy
-        # (and their BLAS runs one thread during a replay: _replay_one)
-        with dask.config.set({"distributed.nanny.pre-spawn-environ": {}}):
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=40)
+    else:
+        cluster = local_dask_cluster(workers)
         client = Client(cluster)
     try:
         futs = client.map(_replay_one, jobs, pure=False)
@@ -628,6 +620,22 @@ def _run_dask(jobs: list[dict], workers: int, scheduler: str | None, done) -> No
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def local_dask_cluster(workers: int):
+    """A local Dask ``distributed`` cluster for replays: ``workers`` single-threaded worker
+    processes (the replay is CPU-bound Python, one per core).
+
+    Dask's nannies set MALLOC_TRIM_THRESHOLD_=65536 in their workers by default; glibc then
+    returns freed memory at once, and the replay's many numpy temporaries cost mmap/munmap
+    each: 1.5x slower per device, measured. Workers keep glibc's own policy (and their BLAS
+    runs one thread during a replay: :func:`_replay_one`)."""
+    import dask
+    from distributed import LocalCluster
+
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": {}}):
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                            dashboard_address=None, silence_logs=40)
 
 
 def _run_ray(jobs: list[dict], scheduler: str | None, done) -> None:
