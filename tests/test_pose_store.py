@@ -414,3 +414,39 @@ def test_a_saved_store_whose_cells_disagree_is_refused_at_load():
     for broken in ({**state, "key": state["key"][:-1]}, {**state, "key": [state["key"][0]] * len(state["key"])}):
         with pytest.raises(ValueError, match="pose store"):
             PoseStore.from_json(broken)
+
+
+def test_the_blocks_an_add_works_in_change_no_cell_and_no_window_taken(monkeypatch):
+    """``add`` hands its windows to its steps in blocks (``ADD_BLOCK_WINDOWS``, doubled after
+    a block taken whole), not the whole rest of the batch each time. Whatever the block, the
+    store, its counters and the windows a capped call takes are those of one block: with the
+    bound reached many times in the call, invalid windows (NaN, n = 0) among the others, and
+    a cap on new cells."""
+    import selfcal.poses as poses_mod
+    from selfcal.poses import PoseConfig
+
+    cfg = PoseConfig(max_cells=120)
+    for seed in (21, 22):
+        rng = np.random.default_rng(seed)
+        mean, sd, n, t, temp = windows(rng, 2600)
+        n = n.astype(float)
+        bad = rng.choice(len(t), 60, replace=False)
+        mean[bad[:30]] = np.nan
+        n[bad[30:]] = 0.0
+        runs = {}
+        for block in (10**9, 1, 5, 64, 2048):
+            monkeypatch.setattr(poses_mod, "ADD_BLOCK_WINDOWS", block)
+            whole = PoseStore.empty(cfg)
+            out = whole.add(mean, sd, n, t, temp)
+            capped = PoseStore.empty(cfg)
+            capped.add(mean[:900], sd[:900], n[:900], t[:900], temp[:900])
+            taken = [capped.add(mean[i:], sd[i:], n[i:], t[i:], temp[i:], max_new_cells=k)
+                     for i, k in ((900, 7), (1300, 40), (1700, 1))]
+            runs[block] = (whole, out, capped, taken)
+        ref_whole, ref_out, ref_capped, ref_taken = runs[10**9]
+        assert ref_whole.n_merged > 0 and ref_out["bounded"]
+        for block, (whole, out, capped, taken) in runs.items():
+            assert out == ref_out and taken == ref_taken, block
+            for a, b in ((whole, ref_whole), (capped, ref_capped)):
+                _assert_same_store(a, b)
+                assert (a.n_merged, a.n_dropped, a.n_seen) == (b.n_merged, b.n_dropped, b.n_seen), block
