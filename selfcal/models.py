@@ -310,8 +310,9 @@ class ErrorModel:
         s_eff = theta[3:6]
         if "temperature_scale" in self.effects:
             s_eff = s_eff * (1.0 + dtemp[:, None] * theta[self.index("temperature_scale")])
-        u = self.upper(theta)
+        u = None
         if self.base == "seed9":
+            u = self.upper(theta)
             y = raw + b
             z = s_eff * y
             lin = z @ u.T
@@ -323,9 +324,18 @@ class ErrorModel:
             z[:, 0] += nt[:, 0] * y[:, 1] + nt[:, 1] * y[:, 2]
             z[:, 1] += nt[:, 2] * y[:, 2]
             lin = s_eff * z
-        else:
+        elif self.base == "affine9":
+            # z = U y, U unit upper triangular, written out (not a matrix product, whose
+            # rounding is the BLAS library's): the order of :mod:`selfcal._model_jit`'s kernel
             y = raw - b
-            z = y @ u.T  # z = U y
+            u = theta[6:9]  # (nxy, nxz, nyz): the Jacobian reads them from here
+            z = y.copy()
+            z[:, 0] += u[0] * y[:, 1] + u[1] * y[:, 2]
+            z[:, 1] += u[2] * y[:, 2]
+            lin = s_eff * z
+        else:  # scale6: U = I
+            y = raw - b
+            z = y
             lin = s_eff * z
         if "scale_nonlinearity" in self.effects:
             q = theta[self.index("scale_nonlinearity")]
@@ -355,15 +365,25 @@ class ErrorModel:
 
     def residuals(self, theta, raw, temp_c=None, t_s=None) -> np.ndarray:
         """Norm residuals ``||a|| - 1`` (g), shape (n,)."""
-        a = self.apply(theta, raw, temp_c, t_s)
-        return np.sqrt(np.einsum("ij,ij->i", a, a)) - 1.0
+        return _norm(self.apply(theta, raw, temp_c, t_s)) - 1.0
 
-    def residual_jac(self, theta, raw, temp_c=None, t_s=None) -> tuple[np.ndarray, np.ndarray]:
-        """Norm residuals (n,) in g and their analytic Jacobian (n, p)."""
+    def residual_jac(self, theta, raw, temp_c=None, t_s=None, accelerate=None) -> tuple[np.ndarray, np.ndarray]:
+        """Norm residuals (n,) in g and their analytic Jacobian (n, p).
+
+        ``accelerate``: None uses the numba kernel of :mod:`selfcal.model_numba` when it is
+        there (the same values bit for bit), False the numpy code; or a kernel to use.
+        """
         theta = np.asarray(theta, dtype=float)
         raw = np.asarray(raw, dtype=float)
+        if self.base != "seed9" and accelerate is not False:
+            if accelerate is None:
+                from selfcal.model_numba import kernel
+
+                accelerate = kernel(raw.shape[0] if raw.ndim == 2 else 0)
+            if accelerate is not None and raw.ndim == 2 and raw.shape[1] == 3:
+                return self._residual_jac_kernel(accelerate, theta, raw, temp_c, t_s)
         a, (y, z, lin, s_eff, u, dtemp, dtime) = self._forward(theta, raw, temp_c, t_s)
-        norm = np.sqrt(np.einsum("ij,ij->i", a, a))
+        norm = _norm(a)
         nhat = a / norm[:, None]
         r = norm - 1.0
         n = raw.shape[0]
@@ -387,12 +407,12 @@ class ErrorModel:
             return r, jac
         # lin = s_eff * z, z = U y, y = raw - b_eff
         ws = w * s_eff
-        if "temperature_cross" in self.effects:  # u holds the per-row (nxy, nxz, nyz)
-            v = ws.copy()  # dr/dy = ws^T U(T), rows
-            v[:, 1] += ws[:, 0] * u[:, 0]
-            v[:, 2] += ws[:, 0] * u[:, 1] + ws[:, 1] * u[:, 2]
-        else:
-            v = ws @ u  # dr/dy, rows
+        if self.base == "affine9":  # u: (nxy, nxz, nyz), per row with temperature_cross
+            v = ws.copy()  # dr/dy = ws^T U, rows, written out as z is
+            v[:, 1] += ws[:, 0] * u[..., 0]
+            v[:, 2] += ws[:, 0] * u[..., 1] + ws[:, 1] * u[..., 2]
+        else:  # scale6: U = I
+            v = ws
         jac[:, 0:3] = -v
         scale_factor = 1.0
         if "temperature_scale" in self.effects:
@@ -413,6 +433,33 @@ class ErrorModel:
         if "bias_step" in self.effects:
             jac[:, self.index("bias_step")] = -v * self._after_step(n, t_s)[:, None]
         return r, jac
+
+
+    def _residual_jac_kernel(self, kern, theta, raw, temp_c, t_s) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`residual_jac` by the kernel ``kern`` (scale6, affine9)."""
+        n = raw.shape[0]
+        dtemp, dtime = self._covariates(n, temp_c, t_s)
+        after = self._after_step(n, t_s) if "bias_step" in self.effects else None
+        none = np.zeros(0)
+
+        def first(effect: str) -> int:
+            return self.index(effect).start if effect in self.effects else -1
+
+        r = np.empty(n)
+        jac = np.empty((n, self.n_params))
+        kern(np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(raw, dtype=float),
+             none if dtemp is None else np.ascontiguousarray(dtemp, dtype=float),
+             none if dtime is None else np.ascontiguousarray(dtime, dtype=float),
+             none if after is None else after, self.base == "affine9",
+             first("bias_step"), first("temperature_bias"), first("time_drift_bias"),
+             first("temperature_scale"), first("scale_nonlinearity"), first("temperature_cross"), r, jac)
+        return r, jac
+
+
+def _norm(a: np.ndarray) -> np.ndarray:
+    """Row norms of ``a`` (n, 3): ``sqrt((a0² + a1²) + a2²)``, in that order (the kernel's)."""
+    sq = a * a
+    return np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2])
 
 
 def available_models() -> list[str]:

@@ -48,13 +48,14 @@ from typing import Any
 
 import numpy as np
 
+from selfcal import model_numba
 from selfcal.attitude import roll_pitch_deg
 from selfcal.calibrator import OnlineCalibrator
 from selfcal.config import section
 from selfcal.errors import InputError
 from selfcal.fit import sphere_directions
 from selfcal.models import ErrorModel
-from selfcal.sim import SimConfig, Simulation, canonical_qr, sensor_mean
+from selfcal.sim import SimConfig, Simulation, canonical_qr, plan_numba, sensor_mean
 from selfcal.soak import find_soaks
 
 SECONDS_PER_DAY = 86400.0
@@ -261,6 +262,8 @@ def replay(
     if effects:
         sim_cfg = sim_cfg.with_effects(list(effects))
     clock = StageClock()
+    if days >= plan_numba.LOAD_FOR_DAYS:  # the fits' kernel pays for its load over a run this long
+        model_numba.load()
     rng = np.random.default_rng(seed)
     with clock("simulation"):
         sim = Simulation(sim_cfg, rng, days=days, seed=seed)
@@ -575,12 +578,12 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
     else:
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        from selfcal.sim import plan_numba
-
         # loaded once here, the simulator planner's kernels (and at the samples level the
         # detector's) come to every forked process; otherwise each loads and checks them,
         # or all compile them into an empty numba cache at once
         plan_numba.kernels(float(kwargs.get("days", 30.0)) * devices / workers)
+        if float(kwargs.get("days", 30.0)) * devices / workers >= plan_numba.LOAD_FOR_DAYS:
+            model_numba.load()  # the fits' kernel, likewise
         if kwargs.get("level") == "samples":
             from selfcal.detect_numba import kernels_now
 

@@ -1,0 +1,136 @@
+"""Optional numba kernel of the error models' residuals and Jacobian: the same values, faster.
+
+:meth:`selfcal.models.ErrorModel.residual_jac` is the innermost call of every fit (each
+Levenberg-Marquardt evaluation, the curvature probes, the held-out checks): about thirty
+numpy operations over (n, 3) arrays. For ``scale6`` and ``affine9`` with any effects, the
+kernel (:mod:`selfcal._model_jit`) computes them row by row in one pass, the same
+expressions in the same order, so its residuals and Jacobian are numpy's bit for bit, and
+every fit, published version and replay is the same with or without it. At its first load
+in a process it is compiled (or loaded from numba's cache) and compared with the numpy
+code on every model of :data:`CHECK_MODELS`; if anything differs, or numba fails, the
+numpy code runs, with one warning.
+
+Loading costs a few tenths of a second from numba's cache (seconds to compile into an
+empty one), about what the numpy code spends on ~20 000 rows: a call with fewer rows than
+:data:`LOAD_FOR_ROWS` uses the kernel only once something loaded it (:func:`load`: the
+replays, the service's refit workers).
+
+numba is optional (``pip install 'selfcal[fast]'``); ``SELFCAL_NUMBA=0`` switches this
+kernel off as it does the detector's (:mod:`selfcal.detect_numba`).
+"""
+
+from __future__ import annotations
+
+import threading
+import warnings
+
+import numpy as np
+
+#: A call with fewer rows uses the kernel only if it is loaded already.
+LOAD_FOR_ROWS = 2000
+
+#: The models of the first-use check: each base without effects, every effect alone, and
+#: combinations of several (the kernel's branches are per effect).
+CHECK_MODELS = (
+    "scale6", "affine9",
+    "affine9+temperature_bias", "affine9+temperature_scale", "affine9+time_drift_bias",
+    "affine9+scale_nonlinearity", "affine9+temperature_cross", "affine9+bias_step",
+    "scale6+temperature_bias+temperature_scale+time_drift_bias+scale_nonlinearity+bias_step",
+    "affine9+temperature_bias+temperature_scale+time_drift_bias+scale_nonlinearity+temperature_cross+bias_step",
+    "affine9+temperature_bias+temperature_cross",
+)
+
+_lock = threading.Lock()
+_found: list = []  # [kernel or None] once loaded and checked
+
+
+def kernel(n_rows: int = 0):
+    """The kernel ``residual_jac`` of :mod:`selfcal._model_jit`, or None: numba missing,
+    switched off by ``SELFCAL_NUMBA``, not numpy's results here, or not loaded yet and
+    ``n_rows`` below :data:`LOAD_FOR_ROWS`."""
+    from selfcal.detect_numba import enabled
+
+    if not enabled():
+        return None
+    if not _found and n_rows < LOAD_FOR_ROWS:
+        return None
+    return _checked()
+
+
+def load() -> bool:
+    """Load and check the kernel now (a process about to run many fits); whether it is used."""
+    return kernel(LOAD_FOR_ROWS) is not None
+
+
+def loaded() -> bool:
+    """Whether the kernel was loaded and checked (or found unusable) in this process."""
+    return bool(_found)
+
+
+def reset() -> None:
+    """Forget the loaded kernel (tests)."""
+    with _lock:
+        _found.clear()
+
+
+def _checked():
+    if not _found:
+        with _lock:
+            if not _found:
+                _found.append(_load_and_check())
+    return _found[0]
+
+
+def _load_and_check():
+    try:
+        import numba
+
+        if numba.config.DISABLE_JIT:  # it would run as plain Python, far slower than numpy
+            return None
+        from selfcal import _model_jit
+
+        ok = _same_as_numpy(_model_jit.residual_jac)
+    except ImportError:  # no numba
+        return None
+    except Exception as exc:  # noqa: BLE001 - a compiler error, no cache location: never stop a fit
+        warnings.warn(f"selfcal: the error models' numba kernel is not used ({exc!r}); running their numpy "
+                      "code", RuntimeWarning, stacklevel=4)
+        return None
+    if not ok:
+        warnings.warn("selfcal: the error models' numba kernel differs from their numpy code on this "
+                      "machine; running the numpy code", RuntimeWarning, stacklevel=4)
+        return None
+    return _model_jit.residual_jac
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return (a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
+            and np.array_equal(np.signbit(a), np.signbit(b)))
+
+
+def _same_as_numpy(kern) -> bool:
+    """Whether ``kern`` gives the numpy code's residuals and Jacobian bit for bit (the signs
+    of zeros included) on every model of :data:`CHECK_MODELS`, at random parameters and
+    readings (rows with zeros, a row of -0.0) and with a layout the fits pass (a column
+    slice)."""
+    from selfcal.models import ErrorModel
+
+    rng = np.random.default_rng(2024)
+    for name in CHECK_MODELS:
+        model = ErrorModel(name, temp_ref_c=25.0, t_ref_s=1e5, t_step_s=3e5)
+        for trial in range(3):
+            n = 37
+            raw = rng.normal(0.0, 0.6, (n, 3)) + rng.choice([-1.0, 1.0], (n, 3)) * (rng.random((n, 3)) < 0.4)
+            raw[3] = 0.0
+            raw[4] = -0.0
+            theta = model.nominal() + rng.normal(0.0, 0.05, model.n_params)
+            temp = rng.uniform(-10.0, 45.0, n)
+            t_s = rng.uniform(0.0, 6e5, n)
+            big = np.empty((n, 5))
+            big[:, 1:4] = raw
+            for rows in (raw, big[:, 1:4]):
+                want = model.residual_jac(theta, rows, temp, t_s, accelerate=False)
+                got = model.residual_jac(theta, rows, temp, t_s, accelerate=kern)
+                if not (_same_bits(got[0], want[0]) and _same_bits(got[1], want[1])):
+                    return False
+    return True
