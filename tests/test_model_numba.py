@@ -12,6 +12,7 @@ import pytest
 
 from selfcal import model_numba
 from selfcal.models import EFFECT_PARAMS, ErrorModel
+from test_calibrator import _strip_timing as without_timings  # fit_ms: a wall time
 
 needs_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None,
                                  reason="numba is not installed (pip install 'selfcal[fast]')")
@@ -29,15 +30,6 @@ def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     sign = ~np.isnan(a)
     return (a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
             and np.array_equal(np.signbit(a)[sign], np.signbit(b)[sign]))
-
-
-def without_timings(x):
-    """``x`` with every ``fit_ms`` (a wall time) left out, recursively."""
-    if isinstance(x, dict):
-        return {k: without_timings(v) for k, v in x.items() if k != "fit_ms"}
-    if isinstance(x, list):
-        return [without_timings(v) for v in x]
-    return x
 
 
 def every_model() -> list[str]:
