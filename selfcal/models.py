@@ -133,6 +133,10 @@ class ErrorModel:
     base: str = field(init=False)
     effects: tuple[str, ...] = field(init=False)
     param_names: tuple[str, ...] = field(init=False)
+    # the first index of each effect's parameters in the kernel's order (bias_step,
+    # temperature_bias, time_drift_bias, temperature_scale, scale_nonlinearity,
+    # temperature_cross), -1 without it: found once, not at every kernel call
+    _kernel_index: tuple[int, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         base, effects = parse_model_name(self.name)
@@ -141,6 +145,10 @@ class ErrorModel:
         names = BASE_PARAMS[base] + tuple(n for e in effects for n in _ALL_EFFECT_PARAMS[e])
         object.__setattr__(self, "param_names", names)
         object.__setattr__(self, "name", "+".join((base,) + effects))
+        object.__setattr__(self, "_kernel_index", tuple(
+            self.index(e).start if e in effects else -1
+            for e in ("bias_step", "temperature_bias", "time_drift_bias", "temperature_scale",
+                      "scale_nonlinearity", "temperature_cross")))
         if "bias_step" in effects and not np.isfinite(self.t_step_s):
             raise InputError("model: bias_step needs the time of the step (t_step_s); `selfcal diagnose` scans "
                              "for it, and the online calibrator finds a step at its model checks and fits the "
@@ -434,25 +442,18 @@ class ErrorModel:
             jac[:, self.index("bias_step")] = -v * self._after_step(n, t_s)[:, None]
         return r, jac
 
-
     def _residual_jac_kernel(self, kern, theta, raw, temp_c, t_s) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`residual_jac` by the kernel ``kern`` (scale6, affine9)."""
         n = raw.shape[0]
         dtemp, dtime = self._covariates(n, temp_c, t_s)
         after = self._after_step(n, t_s) if "bias_step" in self.effects else None
         none = np.zeros(0)
-
-        def first(effect: str) -> int:
-            return self.index(effect).start if effect in self.effects else -1
-
         r = np.empty(n)
         jac = np.empty((n, self.n_params))
         kern(np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(raw, dtype=float),
              none if dtemp is None else np.ascontiguousarray(dtemp, dtype=float),
              none if dtime is None else np.ascontiguousarray(dtime, dtype=float),
-             none if after is None else after, self.base == "affine9",
-             first("bias_step"), first("temperature_bias"), first("time_drift_bias"),
-             first("temperature_scale"), first("scale_nonlinearity"), first("temperature_cross"), r, jac)
+             none if after is None else after, self.base == "affine9", *self._kernel_index, r, jac)
         return r, jac
 
 
