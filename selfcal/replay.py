@@ -284,7 +284,8 @@ def replay(
         for run in runs:
             keep[keep_idx[run]] = False
         soak_info.update(n_soaks=len(runs), n_windows=int(sum(r.stop - r.start for r in runs)))
-    poses = PoseTable(**{k: getattr(poses, k)[keep] for k in PoseTable.__dataclass_fields__})
+    if not keep.all():  # the same rows as [keep]; np.compress is ~2x faster on (n, 3) rows
+        poses = PoseTable(**{k: np.compress(keep, getattr(poses, k), axis=0) for k in PoseTable.__dataclass_fields__})
     with clock("scores"):
         metrics = TruthMetrics(sim, poses)
     init_rng = np.random.default_rng([seed, 1])

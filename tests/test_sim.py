@@ -12,6 +12,7 @@ from selfcal.sim import (
     EFFECT_NAMES, SensorTruth, SimConfig, Simulation, SimTruth, canonical_params, canonical_qr, make_schedule,
 )
 from selfcal.sim.motion import gait_force, gravity_foot, world_to_foot
+from selfcal.sim.sensor import sensor_mean
 from selfcal.sim.temperature import segment_start_states, temperature_at
 from selfcal.sim.wearer import GAIT, OFF, SIT, STAND, STILL, WALK
 
@@ -395,6 +396,52 @@ def test_the_window_temperatures_do_not_depend_on_the_block_they_are_computed_in
     monkeypatch.setattr(Simulation, "TEMPERATURE_BLOCK", 1 << 40)  # one block
     one = Simulation(cfg, np.random.default_rng(8), days=2.0).poses()
     assert np.array_equal(one.temp_true_c, whole.temp_true_c) and np.array_equal(one.mean_g, whole.mean_g)
+
+
+def test_the_pose_table_does_not_depend_on_the_block_its_windows_are_computed_in(monkeypatch):
+    """poses() draws each random quantity whole, in one order, and does the arithmetic on
+    the draws in place by blocks of windows (POSE_BLOCK): any block size gives the table of
+    one pass, bit for bit, with every sensor effect on (the cross-axis tempco's rows go
+    through a matrix product)."""
+    cfg = SimConfig().with_effects(["temperature_bias", "temperature_scale", "temperature_cross",
+                                    "time_drift_bias", "scale_nonlinearity", "bias_step"])
+    monkeypatch.setattr(Simulation, "POSE_BLOCK", 1 << 40)  # one block
+    whole = Simulation(cfg, np.random.default_rng(9), days=2.0).poses()
+    assert len(whole) > 1000
+    for block in (1, 7, 1000, 1 << 15):
+        monkeypatch.setattr(Simulation, "POSE_BLOCK", block)
+        part = Simulation(cfg, np.random.default_rng(9), days=2.0).poses()
+        for name in type(whole).__dataclass_fields__:
+            a, b = getattr(whole, name), getattr(part, name)
+            assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b), (block, name)
+    # the draws are the stream's: the sds scatter as chi-square, the means about the clean value
+    assert np.all(whole.sd_g > 0) and np.all(whole.pressure_kpa >= 0)
+    z = (whole.mean_g - sensor_mean(Simulation(cfg, np.random.default_rng(9), days=2.0).truth.sensor,
+                                    whole.a_true_g, whole.temp_true_c, whole.t_s + whole.duration_s / 2))
+    z /= np.sqrt(whole.noise_var_g2)
+    assert abs(float(np.mean(z))) < 0.05 and 0.9 < float(np.std(z)) < 1.1
+
+
+def test_the_schedule_table_by_column_is_the_table_by_row():
+    """The planner's rows are read by column (each a contiguous array) when the schedule is
+    finished: the same values as the table by row; a selection of rows that are the first
+    ones is a slice (a view), any other the boolean mask itself."""
+    from selfcal.sim import wearer
+
+    b = wearer._Builder(SimConfig(), np.random.default_rng(3))
+    b.add_block(np.random.default_rng(4).normal(size=(5, len(wearer._COLUMNS))))
+    b.rows.append(tuple(range(len(wearer._COLUMNS))))
+    b.add_block(np.random.default_rng(5).normal(size=(3, len(wearer._COLUMNS))))
+    b.rows.append(tuple(range(len(wearer._COLUMNS), 2 * len(wearer._COLUMNS))))
+    cols = b.columns()
+    assert cols.flags.c_contiguous and np.array_equal(cols, b.table().T)
+    assert np.array_equal(wearer._Builder(SimConfig(), np.random.default_rng(3)).columns(),
+                          np.empty((len(wearer._COLUMNS), 0)))
+    keep = np.array([True, True, True, False, False])
+    assert wearer._rows_kept(keep) == slice(0, 3)
+    assert wearer._rows_kept(np.ones(4, bool)) == slice(0, 4)
+    odd = np.array([True, False, True])
+    assert wearer._rows_kept(odd) is odd
 
 
 # ------------------------------------------------------------------ config and truth

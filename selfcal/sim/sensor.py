@@ -294,12 +294,17 @@ def sensor_mean(truth: SensorTruth, a_true_g: np.ndarray, temp_c: np.ndarray, t_
     if "temperature_cross" in on:
         # M(T) = Q diag(s) U(T), U(T) = U + dT N (N strictly upper: the tempcos of nxy, nxz, nyz),
         # so inv(M(T)) = inv(U(T)) diag(1/s) Q^T: rotate and unscale here, invert U(T) per row
-        a = np.ascontiguousarray(a)  # the matmul below on rows, whatever layout came in
         q, r = canonical_qr(truth.matrix)
         s = np.diag(r)
         nt = r[[0, 0, 1], [1, 2, 2]] / s[[0, 0, 1]] + d_temp[:, None] * (1e-6 * eff["temperature_cross"])
-        w = (a @ q) / s  # diag(1/s) Q^T a, row-wise
-        y = w.copy()  # solve U(T) y = w (back substitution, unit diagonal)
+        # diag(1/s) Q^T a, row-wise, each axis written out as ((a0 q0j + a1 q1j) + a2 q2j) / s_j:
+        # a matmul's rounding depends on how many rows it is given (one row differed from
+        # a block of them), and the simulator computes its rows in blocks of any length
+        cols = np.ascontiguousarray(a.T)
+        w = np.empty((len(a), 3))
+        for j in range(3):
+            w[:, j] = (cols[0] * q[0, j] + cols[1] * q[1, j] + cols[2] * q[2, j]) / s[j]
+        y = w  # solve U(T) y = w in place (back substitution, unit diagonal)
         y[:, 1] -= nt[:, 2] * y[:, 2]
         y[:, 0] -= nt[:, 0] * y[:, 1] + nt[:, 1] * y[:, 2]
         return y + truth.offset + _additive(truth, d_temp, t_s)

@@ -348,31 +348,53 @@ class Simulation:
         t_mid = t_start + 0.5 * dur
         a_true = gravity_foot(s.pitch0[seg0], s.roll0[seg0])
         truth = self.truth.sensor
-        mean_clean = sensor_mean(truth, a_true, temp_true, t_mid)
         # samples received
         spp = cfg.ble.samples_per_packet
         n_pk = np.maximum((w1 - w0) // spp, 1)
         n_recv = rng.binomial(n_pk, 1.0 - cfg.ble.packet_loss_rate) * spp
         n_recv = np.minimum(np.maximum(n_recv, 1), w1 - w0)
+        dof = np.maximum(n_recv - 1, 1)
+        # the draws, whole and in this order (the stream's numbers); the arithmetic on them
+        # is done in place, by blocks of windows (:attr:`POSE_BLOCK`)
+        mean_g = rng.standard_normal((m, 3))
+        sd_g = rng.chisquare(np.broadcast_to(dof[:, None].astype(float), (m, 3)))
+        temp_rep = rng.standard_normal(m)
+        press = rng.standard_normal((m, 4))
         sway = s.sd_g[seg0]
         alpha = np.exp(-2 * np.pi * cfg.posture.sway_corner_hz / rate)
         corr = (1 + alpha) / (1 - alpha)
         noise_var = truth.noise_sd_g**2 + truth.lsb_g**2 / 12.0
-        var_mean = (noise_var[None, :] + (sway**2 * corr)[:, None]) / n_recv[:, None]
-        mean_g = mean_clean + np.sqrt(var_mean) * rng.standard_normal((m, 3))
-        sd_true = np.sqrt(noise_var[None, :] + (sway**2)[:, None])
-        dof = np.maximum(n_recv - 1, 1)
-        sd_g = sd_true * np.sqrt(rng.chisquare(dof[:, None] * np.ones((1, 3))) / dof[:, None])
-        tc = cfg.temperature
-        temp_rep = temp_true + tc.noise_sd_c / np.sqrt(n_recv) * rng.standard_normal(m)
-        pc = cfg.pressure
-        press = s.load[seg0] * s.stand_kpa + pc.offset_kpa
-        press = np.maximum(press + pc.noise_kpa / np.sqrt(n_recv)[:, None] * rng.standard_normal((m, 4)), 0.0)
+        tc, pc = cfg.temperature, cfg.pressure
+        var_mean = np.empty((m, 3))
+        for lo in range(0, m, self.POSE_BLOCK):
+            b = slice(lo, lo + self.POSE_BLOCK)
+            mean_clean = sensor_mean(truth, a_true[b], temp_true[b], t_mid[b])
+            sw2 = sway[b] ** 2
+            root_n = np.sqrt(n_recv[b])
+            var_mean[b] = (noise_var[None, :] + (sw2 * corr)[:, None]) / n_recv[b, None]
+            mean_g[b] *= np.sqrt(var_mean[b])
+            mean_g[b] += mean_clean
+            sd_true = np.sqrt(noise_var[None, :] + sw2[:, None])
+            chi = sd_g[b]
+            chi /= dof[b, None]
+            np.sqrt(chi, out=chi)
+            chi *= sd_true
+            temp_rep[b] *= tc.noise_sd_c / root_n
+            temp_rep[b] += temp_true[b]
+            p = press[b]
+            p *= (pc.noise_kpa / root_n)[:, None]
+            p += s.load[seg0[b]] * s.stand_kpa + pc.offset_kpa
+            np.maximum(p, 0.0, out=p)
         return PoseTable(
             t_s=t_start, duration_s=dur, n=n_recv.astype(np.int64), mean_g=mean_g, sd_g=sd_g,
             temp_c=temp_rep, pressure_kpa=press, a_true_g=a_true, temp_true_c=temp_true,
             activity=s.activity[seg0], noise_var_g2=var_mean,
         )
+
+    #: Windows whose means, sds, temperatures and pressures are computed at a time
+    #: (:meth:`poses`): every value is a window's own, so the blocks give one pass's
+    #: values bit for bit, and their temporaries stay ~1 MB, reused from block to block.
+    POSE_BLOCK = 1 << 15
 
     #: Windows whose mean temperature is computed at a time (:meth:`_window_temperature`):
     #: its (k, 9) temporaries stay a few MB, which the allocator reuses from block to block.
