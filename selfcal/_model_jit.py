@@ -132,3 +132,29 @@ def residual_jac(theta, raw, dtemp, dtime, after, has_n, i_sb, i_tb, i_db, i_ts,
                 jac[i, i_tn] = j6 * dt
                 jac[i, i_tn + 1] = j7 * dt
                 jac[i, i_tn + 2] = j8 * dt
+
+
+@_jit
+def whitened_residual_jac(theta, raw, dtemp, dtime, after, has_n, i_sb, i_tb, i_db, i_ts, i_q, i_tn, var_axis,
+                          floor2, r, jac, rw, jw):
+    """:func:`residual_jac`, then the residuals and Jacobian whitened by a noise whose sd
+    follows the scales (:class:`selfcal.fit.NoiseModel` without ``scale_nonlinearity``):
+    ``sigma = sqrt(((v0 s0² + v1 s1²) + v2 s2²) + floor2)`` per row (``var_axis`` (n, 3),
+    ``floor2`` g²), ``rw = r / sigma`` (n,) and ``jw = jac / sigma - (rw / sigma) dsigma``
+    (n, p), ``dsigma`` nonzero at the scales only: numpy's expressions, in its order (the
+    other columns subtract ``t * 0.0`` as numpy does, so the signs of zeros agree)."""
+    residual_jac(theta, raw, dtemp, dtime, after, has_n, i_sb, i_tb, i_db, i_ts, i_q, i_tn, r, jac)
+    s0, s1, s2 = theta[3], theta[4], theta[5]
+    ss0, ss1, ss2 = s0 * s0, s1 * s1, s2 * s2
+    p = jac.shape[1]
+    for i in range(raw.shape[0]):
+        v0, v1, v2 = var_axis[i, 0], var_axis[i, 1], var_axis[i, 2]
+        sig = math.sqrt(((v0 * ss0 + v1 * ss1) + v2 * ss2) + floor2)
+        x = r[i] / sig
+        rw[i] = x
+        t = x / sig
+        for k in range(p):
+            jw[i, k] = jac[i, k] / sig - t * 0.0
+        jw[i, 3] = jac[i, 3] / sig - t * ((v0 * s0) / sig)
+        jw[i, 4] = jac[i, 4] / sig - t * ((v1 * s1) / sig)
+        jw[i, 5] = jac[i, 5] / sig - t * ((v2 * s2) / sig)

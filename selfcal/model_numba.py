@@ -5,7 +5,10 @@ Levenberg-Marquardt evaluation, the curvature probes, the held-out checks): abou
 numpy operations over (n, 3) arrays. For ``scale6`` and ``affine9`` with any effects, the
 kernel (:mod:`selfcal._model_jit`) computes them row by row in one pass, the same
 expressions in the same order, so its residuals and Jacobian are numpy's bit for bit, and
-every fit, published version and replay is the same with or without it. At its first load
+every fit, published version and replay is the same with or without it. A second kernel
+(:func:`whitening_kernel`) does a whole Levenberg-Marquardt evaluation of a fit whose noise
+follows the scales (:meth:`selfcal.fit.NoiseModel.whitened`: the residuals, the Jacobian
+and both divided by sigma, ~15 array operations) in one call, checked the same way. At its first load
 in a process it is compiled (or loaded from numba's cache) and compared with the numpy
 code on every model of :data:`CHECK_MODELS`; if anything differs, or numba fails, the
 numpy code runs, with one warning.
@@ -42,6 +45,7 @@ CHECK_MODELS = (
 
 _lock = threading.Lock()
 _found: list = []  # [kernel or None] once loaded and checked
+_found_whitening: list = []  # [whitening kernel or None] likewise, once the kernel is usable
 
 
 def kernel(n_rows: int = 0):
@@ -55,6 +59,19 @@ def kernel(n_rows: int = 0):
     if not _found and n_rows < LOAD_FOR_ROWS:
         return None
     return _checked()
+
+
+def whitening_kernel(n_rows: int = 0):
+    """The kernel ``whitened_residual_jac`` of :mod:`selfcal._model_jit` (the residuals and
+    Jacobian whitened by a :class:`selfcal.fit.NoiseModel`, one call per Levenberg-Marquardt
+    evaluation), or None: as :func:`kernel`, or not the numpy code's values here."""
+    if kernel(n_rows) is None:
+        return None
+    if not _found_whitening:
+        with _lock:
+            if not _found_whitening:
+                _found_whitening.append(_load_and_check_whitening())
+    return _found_whitening[0]
 
 
 def load() -> bool:
@@ -71,6 +88,7 @@ def reset() -> None:
     """Forget the loaded kernel (tests)."""
     with _lock:
         _found.clear()
+        _found_whitening.clear()
 
 
 def _checked():
@@ -103,6 +121,22 @@ def _load_and_check():
     return _model_jit.residual_jac
 
 
+def _load_and_check_whitening():
+    try:
+        from selfcal import _model_jit
+
+        ok = _same_whitening_as_numpy(_model_jit.whitened_residual_jac)
+    except Exception as exc:  # noqa: BLE001 - as _load_and_check
+        warnings.warn(f"selfcal: the error models' whitening kernel is not used ({exc!r}); running their numpy "
+                      "code", RuntimeWarning, stacklevel=5)
+        return None
+    if not ok:
+        warnings.warn("selfcal: the error models' whitening kernel differs from their numpy code on this "
+                      "machine; running the numpy code", RuntimeWarning, stacklevel=5)
+        return None
+    return _model_jit.whitened_residual_jac
+
+
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     return (a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
             and np.array_equal(np.signbit(a), np.signbit(b)))
@@ -133,4 +167,33 @@ def _same_as_numpy(kern) -> bool:
                 got = model.residual_jac(theta, rows, temp, t_s, accelerate=kern)
                 if not (_same_bits(got[0], want[0]) and _same_bits(got[1], want[1])):
                     return False
+    return True
+
+
+def _same_whitening_as_numpy(kern) -> bool:
+    """Whether ``kern`` gives :meth:`selfcal.fit.NoiseModel.whitened`'s numpy values bit
+    for bit (residuals, Jacobian and both whitened) on every model of :data:`CHECK_MODELS`,
+    with noise weights as a robust fit scales them (one near zero: a rejected pose)."""
+    from selfcal.fit import NoiseModel
+    from selfcal.models import ErrorModel
+
+    rng = np.random.default_rng(2025)
+    for name in CHECK_MODELS:
+        model = ErrorModel(name, temp_ref_c=25.0, t_ref_s=1e5, t_step_s=3e5)
+        for trial in range(3):
+            n = 41
+            raw = rng.normal(0.0, 0.6, (n, 3)) + rng.choice([-1.0, 1.0], (n, 3)) * (rng.random((n, 3)) < 0.4)
+            raw[3] = 0.0
+            raw[4] = -0.0
+            theta = model.nominal() + rng.normal(0.0, 0.05, model.n_params)
+            temp = rng.uniform(-10.0, 45.0, n)
+            t_s = rng.uniform(0.0, 6e5, n)
+            weights = rng.uniform(0.1, 1.0, n)
+            weights[5] = 1e-12
+            noise = NoiseModel(rng.uniform(0.0, 4e-6, (n, 3)), float(rng.choice([0.0, 1e-6])), None).scaled(weights)
+            with np.errstate(all="ignore"):
+                want = noise.whitened(model, theta, raw, temp, t_s, accelerate=False)
+                got = noise.whitened(model, theta, raw, temp, t_s, accelerate=kern)
+            if not all(_same_bits(g, w) for g, w in zip(got, want)):
+                return False
     return True

@@ -457,6 +457,27 @@ class ErrorModel:
         return r, jac
 
 
+    def _whitened_kernel(self, kern, theta, raw, temp_c, t_s, var_axis, floor2) -> tuple:
+        """``(r, jac, r / sigma, d(r / sigma) / d theta)`` by the whitening kernel ``kern``
+        (:func:`selfcal._model_jit.whitened_residual_jac`; scale6, affine9): ``sigma``
+        from ``var_axis`` (n, 3) and ``floor2`` (g²) as :class:`selfcal.fit.NoiseModel` has it."""
+        raw = np.asarray(raw, dtype=float)
+        if raw.ndim != 2 or raw.shape[1] != 3:
+            raise InputError(f"raw: expected shape (n, 3), got {raw.shape}")
+        n = raw.shape[0]
+        dtemp, dtime = self._covariates(n, temp_c, t_s)
+        after = self._after_step(n, t_s) if "bias_step" in self.effects else None
+        none = np.zeros(0)
+        r, rw = np.empty(n), np.empty(n)
+        jac, jw = np.empty((n, self.n_params)), np.empty((n, self.n_params))
+        kern(np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(raw),
+             none if dtemp is None else np.ascontiguousarray(dtemp, dtype=float),
+             none if dtime is None else np.ascontiguousarray(dtime, dtype=float),
+             none if after is None else after, self.base == "affine9", *self._kernel_index,
+             np.ascontiguousarray(var_axis, dtype=float), float(floor2), r, jac, rw, jw)
+        return r, jac, rw, jw
+
+
 def _norm(a: np.ndarray) -> np.ndarray:
     """Row norms of ``a`` (n, 3): ``sqrt((a0² + a1²) + a2²)``, in that order (the kernel's)."""
     sq = a * a

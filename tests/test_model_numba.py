@@ -1,6 +1,7 @@
-"""The error models' optional numba kernel (selfcal.model_numba) gives the numpy code's
-residuals and Jacobian bit for bit, for every base and effect it covers, and so the same
-fits: a fit, a calibrator's refits and a replay do not depend on whether numba is there."""
+"""The error models' optional numba kernels (selfcal.model_numba) give the numpy code's
+residuals and Jacobian, and their whitened values, bit for bit, for every base and effect
+they cover, and so the same fits: a fit, a calibrator's refits and a replay do not depend
+on whether numba is there."""
 
 from __future__ import annotations
 
@@ -90,6 +91,62 @@ def test_the_kernel_gives_the_numpy_residuals_and_jacobian_bit_for_bit(seed):
 
 
 @needs_numba
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_whitening_kernel_gives_the_numpy_whitened_residuals_and_jacobian_bit_for_bit(seed):
+    """One Levenberg-Marquardt evaluation (residuals, Jacobian, both divided by a sigma
+    that follows the scales) by the whitening kernel: the numpy code's four arrays, for
+    every model, robust weights down to a rejected pose, zero and nonzero floors."""
+    from selfcal import _model_jit
+    from selfcal.fit import NoiseModel
+
+    kern = _model_jit.whitened_residual_jac
+    assert model_numba.whitening_kernel(model_numba.LOAD_FOR_ROWS) is kern, "it failed its first-use check here"
+    rng = np.random.default_rng(seed)
+    for name in every_model():
+        model = ErrorModel(name, temp_ref_c=float(rng.uniform(0, 40)), t_ref_s=float(rng.uniform(0, 1e6)),
+                           t_step_s=float(rng.uniform(0, 1e6)))
+        n = int(rng.integers(1, 300))
+        raw = readings(rng, n)
+        theta = model.nominal() + rng.normal(0.0, 0.05, model.n_params) * 10.0 ** rng.integers(-4, 1)
+        temp = rng.uniform(-20.0, 60.0, n)
+        t_s = rng.uniform(0.0, 2e6, n)
+        var_axis = rng.uniform(0.0, 1e-5, (n, 3)) * (rng.random((n, 1)) < 0.9)  # some rows without noise
+        weights = np.where(rng.random(n) < 0.1, 1e-12, rng.uniform(0.05, 1.0, n))
+        noise = NoiseModel(var_axis, float(rng.choice([0.0, 2.5e-7])), None).scaled(weights)
+        wide = np.empty((n, 6))
+        wide[:, 1:4] = raw
+        for rows in (raw, wide[:, 1:4]):
+            with np.errstate(all="ignore"):
+                want = noise.whitened(model, theta, rows, temp, t_s, accelerate=False)
+                got = noise.whitened(model, theta, rows, temp, t_s, accelerate=kern)
+                auto = noise.whitened(model, theta, rows, temp, t_s)
+            for g in (got, auto):
+                for a, b, what in zip(g, want, ("r", "jac", "r/sigma", "jac whitened")):
+                    assert same_bits(a, b), (name, what)
+        # the numpy code's sigma is the one every other part of a fit uses
+        with np.errstate(all="ignore"):
+            assert same_bits(want[0] / noise.sigma(theta), want[2]), name
+
+
+def test_a_noise_with_the_scale_nonlinearity_is_whitened_by_the_numpy_code(monkeypatch):
+    """The kernel's sigma has no nonlinearity gain: a noise model that has one never calls it."""
+    from selfcal.fit import FitConfig, NoiseModel
+
+    def refuse(*args):
+        raise AssertionError("the whitening kernel was called for a noise with the nonlinearity gain")
+
+    rng = np.random.default_rng(3)
+    model = ErrorModel("affine9+scale_nonlinearity")
+    raw = rng.normal(0.0, 0.6, (50, 3))
+    noise = NoiseModel.from_poses(raw, np.full((50, 3), 2e-3), np.full(50, 100.0), FitConfig(), model)
+    assert noise.nonlin is not None
+    theta = model.nominal() + rng.normal(0.0, 0.01, model.n_params)
+    r, jac, rw, jw = noise.whitened(model, theta, raw, accelerate=refuse)
+    sig, dsig = noise(theta)
+    assert np.array_equal(rw, r / sig) and np.allclose(jw, jac / sig[:, None] - (rw / sig)[:, None] * dsig)
+
+
+@needs_numba
 def test_a_kernel_that_differs_is_not_used(monkeypatch):
     """The first-use check compares on every model of CHECK_MODELS: one wrong column of one
     effect is found, and the numpy code runs, with a warning."""
@@ -109,16 +166,57 @@ def test_a_kernel_that_differs_is_not_used(monkeypatch):
         assert model_numba._load_and_check() is None
 
 
+@needs_numba
+def test_a_whitening_kernel_that_differs_is_not_used(monkeypatch):
+    """The whitening kernel's own check: a sigma summed in another order (one rounding) is
+    found, and the numpy code runs, with a warning; the plain kernel stays in use."""
+    import math
+
+    import numba
+
+    from selfcal import _model_jit
+
+    real = model_numba.whitening_kernel(model_numba.LOAD_FOR_ROWS)
+    assert model_numba._same_whitening_as_numpy(real)
+
+    @numba.njit
+    def reassociated(theta, raw, dtemp, dtime, after, has_n, i_sb, i_tb, i_db, i_ts, i_q, i_tn, var_axis, floor2,
+                     r, jac, rw, jw):
+        _model_jit.residual_jac(theta, raw, dtemp, dtime, after, has_n, i_sb, i_tb, i_db, i_ts, i_q, i_tn, r, jac)
+        s0, s1, s2 = theta[3], theta[4], theta[5]
+        for i in range(raw.shape[0]):
+            v0, v1, v2 = var_axis[i, 0], var_axis[i, 1], var_axis[i, 2]
+            sig = math.sqrt((v0 * s0 * s0 + (v1 * s1 * s1 + v2 * s2 * s2)) + floor2)  # another order
+            rw[i] = r[i] / sig
+            t = rw[i] / sig
+            for k in range(jac.shape[1]):
+                jw[i, k] = jac[i, k] / sig - t * 0.0
+            jw[i, 3] = jac[i, 3] / sig - t * ((v0 * s0) / sig)
+            jw[i, 4] = jac[i, 4] / sig - t * ((v1 * s1) / sig)
+            jw[i, 5] = jac[i, 5] / sig - t * ((v2 * s2) / sig)
+
+    assert not model_numba._same_whitening_as_numpy(reassociated)
+    monkeypatch.setattr(_model_jit, "whitened_residual_jac", reassociated)
+    monkeypatch.setattr(model_numba, "_found_whitening", [])
+    with pytest.warns(RuntimeWarning, match="whitening kernel differs"):
+        assert model_numba.whitening_kernel(model_numba.LOAD_FOR_ROWS) is None
+    assert model_numba.kernel(model_numba.LOAD_FOR_ROWS) is not None
+
+
 def test_small_calls_wait_for_a_load_and_the_switch_turns_it_off(monkeypatch):
     """Below LOAD_FOR_ROWS a call does not load the kernel (its load costs more than such a
     call saves); at it, or after load(), the kernel is used; SELFCAL_NUMBA=0 turns it off."""
     monkeypatch.setattr(model_numba, "_found", [])
+    monkeypatch.setattr(model_numba, "_found_whitening", [])
     assert model_numba.kernel(10) is None and not model_numba.loaded()
+    assert model_numba.whitening_kernel(10) is None
     usable = model_numba.kernel(model_numba.LOAD_FOR_ROWS) is not None
     assert model_numba.loaded()
     assert (model_numba.kernel(10) is not None) == usable
+    assert (model_numba.whitening_kernel(10) is not None) <= usable
     monkeypatch.setenv("SELFCAL_NUMBA", "0")
     assert model_numba.kernel(10) is None and model_numba.kernel(10**6) is None
+    assert model_numba.whitening_kernel(10**6) is None
     assert not model_numba.load()
 
 
