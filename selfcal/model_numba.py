@@ -24,10 +24,9 @@ kernel off as it does the detector's (:mod:`selfcal.detect_numba`).
 
 from __future__ import annotations
 
-import threading
-import warnings
-
 import numpy as np
+
+from selfcal.numba_check import CheckedKernel, same_bits
 
 #: A call with fewer rows uses the kernel only if it is loaded already.
 LOAD_FOR_ROWS = 2000
@@ -43,9 +42,16 @@ CHECK_MODELS = (
     "affine9+temperature_bias+temperature_cross",
 )
 
-_lock = threading.Lock()
-_found: list = []  # [kernel or None] once loaded and checked
-_found_whitening: list = []  # [whitening kernel or None] likewise, once the kernel is usable
+def _load_residual_jac():
+    from selfcal import _model_jit
+
+    return _model_jit.residual_jac
+
+
+def _load_whitening():
+    from selfcal import _model_jit
+
+    return _model_jit.whitened_residual_jac
 
 
 def kernel(n_rows: int = 0):
@@ -56,9 +62,9 @@ def kernel(n_rows: int = 0):
 
     if not enabled():
         return None
-    if not _found and n_rows < LOAD_FOR_ROWS:
+    if not RESIDUAL_JAC.loaded() and n_rows < LOAD_FOR_ROWS:
         return None
-    return _checked()
+    return RESIDUAL_JAC.get()
 
 
 def whitening_kernel(n_rows: int = 0):
@@ -67,79 +73,26 @@ def whitening_kernel(n_rows: int = 0):
     evaluation), or None: as :func:`kernel`, or not the numpy code's values here."""
     if kernel(n_rows) is None:
         return None
-    if not _found_whitening:
-        with _lock:
-            if not _found_whitening:
-                _found_whitening.append(_load_and_check_whitening())
-    return _found_whitening[0]
+    return WHITENING.get()
 
 
 def load() -> bool:
-    """Load and check the kernel now (a process about to run many fits); whether it is used."""
-    return kernel(LOAD_FOR_ROWS) is not None
+    """Load and check the kernels now (a process about to run many fits); whether the
+    residual kernel is used."""
+    used = kernel(LOAD_FOR_ROWS) is not None
+    whitening_kernel(LOAD_FOR_ROWS)
+    return used
 
 
 def loaded() -> bool:
     """Whether the kernel was loaded and checked (or found unusable) in this process."""
-    return bool(_found)
+    return RESIDUAL_JAC.loaded()
 
 
 def reset() -> None:
-    """Forget the loaded kernel (tests)."""
-    with _lock:
-        _found.clear()
-        _found_whitening.clear()
-
-
-def _checked():
-    if not _found:
-        with _lock:
-            if not _found:
-                _found.append(_load_and_check())
-    return _found[0]
-
-
-def _load_and_check():
-    try:
-        import numba
-
-        if numba.config.DISABLE_JIT:  # it would run as plain Python, far slower than numpy
-            return None
-        from selfcal import _model_jit
-
-        ok = _same_as_numpy(_model_jit.residual_jac)
-    except ImportError:  # no numba
-        return None
-    except Exception as exc:  # noqa: BLE001 - a compiler error, no cache location: never stop a fit
-        warnings.warn(f"selfcal: the error models' numba kernel is not used ({exc!r}); running their numpy "
-                      "code", RuntimeWarning, stacklevel=4)
-        return None
-    if not ok:
-        warnings.warn("selfcal: the error models' numba kernel differs from their numpy code on this "
-                      "machine; running the numpy code", RuntimeWarning, stacklevel=4)
-        return None
-    return _model_jit.residual_jac
-
-
-def _load_and_check_whitening():
-    try:
-        from selfcal import _model_jit
-
-        ok = _same_whitening_as_numpy(_model_jit.whitened_residual_jac)
-    except Exception as exc:  # noqa: BLE001 - as _load_and_check
-        warnings.warn(f"selfcal: the error models' whitening kernel is not used ({exc!r}); running their numpy "
-                      "code", RuntimeWarning, stacklevel=5)
-        return None
-    if not ok:
-        warnings.warn("selfcal: the error models' whitening kernel differs from their numpy code on this "
-                      "machine; running the numpy code", RuntimeWarning, stacklevel=5)
-        return None
-    return _model_jit.whitened_residual_jac
-
-
-def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
-    return (a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
-            and np.array_equal(np.signbit(a), np.signbit(b)))
+    """Forget the loaded kernels (tests)."""
+    RESIDUAL_JAC.reset()
+    WHITENING.reset()
 
 
 def _same_as_numpy(kern) -> bool:
@@ -147,27 +100,32 @@ def _same_as_numpy(kern) -> bool:
     of zeros included) on every model of :data:`CHECK_MODELS`, at random parameters and
     readings (rows with zeros, a row of -0.0) and with a layout the fits pass (a column
     slice)."""
+    for model, n, raw, theta, temp, t_s in _check_cases(2024, 37):
+        big = np.empty((n, 5))
+        big[:, 1:4] = raw
+        for rows in (raw, big[:, 1:4]):
+            want = model.residual_jac(theta, rows, temp, t_s, accelerate=False)
+            got = model.residual_jac(theta, rows, temp, t_s, accelerate=kern)
+            if not (same_bits(got[0], want[0]) and same_bits(got[1], want[1])):
+                return False
+    return True
+
+
+def _check_cases(seed: int, n: int):
+    """``(model, n, raw (n, 3), theta, temp_c (n,), t_s (n,))``, 3 per model of
+    :data:`CHECK_MODELS`: readings near the axes and between them, a row of zeros and one
+    of -0.0, parameters near nominal, temperatures and times across the effects' ranges."""
     from selfcal.models import ErrorModel
 
-    rng = np.random.default_rng(2024)
+    rng = np.random.default_rng(seed)
     for name in CHECK_MODELS:
         model = ErrorModel(name, temp_ref_c=25.0, t_ref_s=1e5, t_step_s=3e5)
         for trial in range(3):
-            n = 37
             raw = rng.normal(0.0, 0.6, (n, 3)) + rng.choice([-1.0, 1.0], (n, 3)) * (rng.random((n, 3)) < 0.4)
             raw[3] = 0.0
             raw[4] = -0.0
             theta = model.nominal() + rng.normal(0.0, 0.05, model.n_params)
-            temp = rng.uniform(-10.0, 45.0, n)
-            t_s = rng.uniform(0.0, 6e5, n)
-            big = np.empty((n, 5))
-            big[:, 1:4] = raw
-            for rows in (raw, big[:, 1:4]):
-                want = model.residual_jac(theta, rows, temp, t_s, accelerate=False)
-                got = model.residual_jac(theta, rows, temp, t_s, accelerate=kern)
-                if not (_same_bits(got[0], want[0]) and _same_bits(got[1], want[1])):
-                    return False
-    return True
+            yield model, n, raw, theta, rng.uniform(-10.0, 45.0, n), rng.uniform(0.0, 6e5, n)
 
 
 def _same_whitening_as_numpy(kern) -> bool:
@@ -175,25 +133,20 @@ def _same_whitening_as_numpy(kern) -> bool:
     for bit (residuals, Jacobian and both whitened) on every model of :data:`CHECK_MODELS`,
     with noise weights as a robust fit scales them (one near zero: a rejected pose)."""
     from selfcal.fit import NoiseModel
-    from selfcal.models import ErrorModel
 
     rng = np.random.default_rng(2025)
-    for name in CHECK_MODELS:
-        model = ErrorModel(name, temp_ref_c=25.0, t_ref_s=1e5, t_step_s=3e5)
-        for trial in range(3):
-            n = 41
-            raw = rng.normal(0.0, 0.6, (n, 3)) + rng.choice([-1.0, 1.0], (n, 3)) * (rng.random((n, 3)) < 0.4)
-            raw[3] = 0.0
-            raw[4] = -0.0
-            theta = model.nominal() + rng.normal(0.0, 0.05, model.n_params)
-            temp = rng.uniform(-10.0, 45.0, n)
-            t_s = rng.uniform(0.0, 6e5, n)
-            weights = rng.uniform(0.1, 1.0, n)
-            weights[5] = 1e-12
-            noise = NoiseModel(rng.uniform(0.0, 4e-6, (n, 3)), float(rng.choice([0.0, 1e-6])), None).scaled(weights)
-            with np.errstate(all="ignore"):
-                want = noise.whitened(model, theta, raw, temp, t_s, accelerate=False)
-                got = noise.whitened(model, theta, raw, temp, t_s, accelerate=kern)
-            if not all(_same_bits(g, w) for g, w in zip(got, want)):
-                return False
+    for model, n, raw, theta, temp, t_s in _check_cases(2025, 41):
+        weights = rng.uniform(0.1, 1.0, n)
+        weights[5] = 1e-12
+        noise = NoiseModel(rng.uniform(0.0, 4e-6, (n, 3)), float(rng.choice([0.0, 1e-6])), None).scaled(weights)
+        with np.errstate(all="ignore"):
+            want = noise.whitened(model, theta, raw, temp, t_s, accelerate=False)
+            got = noise.whitened(model, theta, raw, temp, t_s, accelerate=kern)
+        if not all(same_bits(g, w) for g, w in zip(got, want)):
+            return False
     return True
+
+
+#: The two kernels, each loaded and checked once per process.
+RESIDUAL_JAC = CheckedKernel("the error models' numba kernel", _load_residual_jac, _same_as_numpy)
+WHITENING = CheckedKernel("the error models' whitening kernel", _load_whitening, _same_whitening_as_numpy)

@@ -131,7 +131,7 @@ def _group_edges(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, last
 
 
-def _running_sums(start_rows: np.ndarray, rows: np.ndarray, first: np.ndarray) -> np.ndarray:
+def _running_sums(start_rows: np.ndarray, rows: np.ndarray, first: np.ndarray, accelerate=None) -> np.ndarray:
     """Each group's running sums before each of its rows, added in order from its start row.
 
     ``rows`` (k, m) come in groups of consecutive rows (``first``: (k,) bool, a group's first
@@ -141,10 +141,21 @@ def _running_sums(start_rows: np.ndarray, rows: np.ndarray, first: np.ndarray) -
     at a time gives (a difference of one cumsum across groups is not: it rounds). One
     sequential cumsum per group when the groups are few, else one vectorised step per
     position in a group (the loop runs min(groups, longest group) times).
+
+    ``accelerate``: None uses the kernel of :mod:`selfcal.store_numba` once it is loaded
+    (the same additions in the same order, in one call), False the numpy code; or a kernel.
     """
     k = rows.shape[0]
     out = np.empty_like(rows)
     if k == 0:
+        return out
+    if accelerate is None:
+        from selfcal.store_numba import kernel
+
+        accelerate = kernel()
+    if accelerate is not None and accelerate is not False:
+        accelerate(np.ascontiguousarray(start_rows, dtype=float), np.ascontiguousarray(rows, dtype=float),
+                   np.ascontiguousarray(first, dtype=bool), out)
         return out
     # out: each group's start row on its first row, then its rows but the last, shifted by one
     out[1:] = rows[:-1]

@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from selfcal import model_numba
+from selfcal import model_numba, store_numba
 from selfcal.attitude import roll_pitch_deg
 from selfcal.calibrator import OnlineCalibrator
 from selfcal.config import section
@@ -262,8 +262,9 @@ def replay(
     if effects:
         sim_cfg = sim_cfg.with_effects(list(effects))
     clock = StageClock()
-    if days >= plan_numba.LOAD_FOR_DAYS:  # the fits' kernel pays for its load over a run this long
+    if days >= plan_numba.LOAD_FOR_DAYS:  # the fits' and the store's kernels pay for their load over a run this long
         model_numba.load()
+        store_numba.load()
     rng = np.random.default_rng(seed)
     with clock("simulation"):
         sim = Simulation(sim_cfg, rng, days=days, seed=seed)
@@ -584,7 +585,8 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
         # or all compile them into an empty numba cache at once
         plan_numba.kernels(float(kwargs.get("days", 30.0)) * devices / workers)
         if float(kwargs.get("days", 30.0)) * devices / workers >= plan_numba.LOAD_FOR_DAYS:
-            model_numba.load()  # the fits' kernel, likewise
+            model_numba.load()  # the fits' and the store's kernels, likewise
+            store_numba.load()
         if kwargs.get("level") == "samples":
             from selfcal.detect_numba import kernels_now
 

@@ -58,6 +58,18 @@ def readings(rng: np.random.Generator, n: int) -> np.ndarray:
     return raw
 
 
+def random_case(rng: np.random.Generator, name: str) -> tuple:
+    """``(model, n, raw (n, 3), theta, temp_c (n,), t_s (n,))``: the model ``name`` with random
+    references, 1-299 readings of :func:`readings`, parameters near nominal at scales from
+    1e-4 to 1 of 0.05, temperatures and times."""
+    model = ErrorModel(name, temp_ref_c=float(rng.uniform(0, 40)), t_ref_s=float(rng.uniform(0, 1e6)),
+                       t_step_s=float(rng.uniform(0, 1e6)))
+    n = int(rng.integers(1, 300))
+    raw = readings(rng, n)
+    theta = model.nominal() + rng.normal(0.0, 0.05, model.n_params) * 10.0 ** rng.integers(-4, 1)
+    return model, n, raw, theta, rng.uniform(-20.0, 60.0, n), rng.uniform(0.0, 2e6, n)
+
+
 @needs_numba
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_the_kernel_gives_the_numpy_residuals_and_jacobian_bit_for_bit(seed):
@@ -65,17 +77,11 @@ def test_the_kernel_gives_the_numpy_residuals_and_jacobian_bit_for_bit(seed):
 
     rng = np.random.default_rng(seed)
     kern = _model_jit.residual_jac  # the kernel itself, whatever the first-use check said of it
-    assert model_numba._checked() is kern, "the kernel failed its first-use check on this machine"
+    assert model_numba.RESIDUAL_JAC.get() is kern, "the kernel failed its first-use check on this machine"
     for name in every_model():
-        model = ErrorModel(name, temp_ref_c=float(rng.uniform(0, 40)), t_ref_s=float(rng.uniform(0, 1e6)),
-                           t_step_s=float(rng.uniform(0, 1e6)))
-        n = int(rng.integers(1, 300))
-        raw = readings(rng, n)
-        theta = model.nominal() + rng.normal(0.0, 0.05, model.n_params) * 10.0 ** rng.integers(-4, 1)
+        model, n, raw, theta, temp, t_s = random_case(rng, name)
         if rng.random() < 0.3:
             theta[:3] = 0.0
-        temp = rng.uniform(-20.0, 60.0, n)
-        t_s = rng.uniform(0.0, 2e6, n)
         # layouts the callers pass: contiguous, a column slice, Fortran order
         wide = np.empty((n, 7))
         wide[:, 2:5] = raw
@@ -103,13 +109,7 @@ def test_the_whitening_kernel_gives_the_numpy_whitened_residuals_and_jacobian_bi
     assert model_numba.whitening_kernel(model_numba.LOAD_FOR_ROWS) is kern, "it failed its first-use check here"
     rng = np.random.default_rng(seed)
     for name in every_model():
-        model = ErrorModel(name, temp_ref_c=float(rng.uniform(0, 40)), t_ref_s=float(rng.uniform(0, 1e6)),
-                           t_step_s=float(rng.uniform(0, 1e6)))
-        n = int(rng.integers(1, 300))
-        raw = readings(rng, n)
-        theta = model.nominal() + rng.normal(0.0, 0.05, model.n_params) * 10.0 ** rng.integers(-4, 1)
-        temp = rng.uniform(-20.0, 60.0, n)
-        t_s = rng.uniform(0.0, 2e6, n)
+        model, n, raw, theta, temp, t_s = random_case(rng, name)
         var_axis = rng.uniform(0.0, 1e-5, (n, 3)) * (rng.random((n, 1)) < 0.9)  # some rows without noise
         weights = np.where(rng.random(n) < 0.1, 1e-12, rng.uniform(0.05, 1.0, n))
         noise = NoiseModel(var_axis, float(rng.choice([0.0, 2.5e-7])), None).scaled(weights)
@@ -150,7 +150,7 @@ def test_a_noise_with_the_scale_nonlinearity_is_whitened_by_the_numpy_code(monke
 def test_a_kernel_that_differs_is_not_used(monkeypatch):
     """The first-use check compares on every model of CHECK_MODELS: one wrong column of one
     effect is found, and the numpy code runs, with a warning."""
-    real = model_numba._checked()
+    real = model_numba.RESIDUAL_JAC.get()
 
     def wrong_nonlinearity(theta, raw, dtemp, dtime, after, has_n, i_sb, i_tb, i_db, i_ts, i_q, i_tn, r, jac):
         real(theta, raw, dtemp, dtime, after, has_n, i_sb, i_tb, i_db, i_ts, i_q, i_tn, r, jac)
@@ -162,8 +162,8 @@ def test_a_kernel_that_differs_is_not_used(monkeypatch):
     from selfcal import _model_jit
 
     monkeypatch.setattr(_model_jit, "residual_jac", wrong_nonlinearity)
-    with pytest.warns(RuntimeWarning, match="differs from their numpy code"):
-        assert model_numba._load_and_check() is None
+    with pytest.warns(RuntimeWarning, match="differs from the numpy code"):
+        assert model_numba.RESIDUAL_JAC.load_and_check() is None
 
 
 @needs_numba
@@ -197,7 +197,7 @@ def test_a_whitening_kernel_that_differs_is_not_used(monkeypatch):
 
     assert not model_numba._same_whitening_as_numpy(reassociated)
     monkeypatch.setattr(_model_jit, "whitened_residual_jac", reassociated)
-    monkeypatch.setattr(model_numba, "_found_whitening", [])
+    monkeypatch.setattr(model_numba.WHITENING, "_found", [])
     with pytest.warns(RuntimeWarning, match="whitening kernel differs"):
         assert model_numba.whitening_kernel(model_numba.LOAD_FOR_ROWS) is None
     assert model_numba.kernel(model_numba.LOAD_FOR_ROWS) is not None
@@ -206,8 +206,8 @@ def test_a_whitening_kernel_that_differs_is_not_used(monkeypatch):
 def test_small_calls_wait_for_a_load_and_the_switch_turns_it_off(monkeypatch):
     """Below LOAD_FOR_ROWS a call does not load the kernel (its load costs more than such a
     call saves); at it, or after load(), the kernel is used; SELFCAL_NUMBA=0 turns it off."""
-    monkeypatch.setattr(model_numba, "_found", [])
-    monkeypatch.setattr(model_numba, "_found_whitening", [])
+    monkeypatch.setattr(model_numba.RESIDUAL_JAC, "_found", [])
+    monkeypatch.setattr(model_numba.WHITENING, "_found", [])
     assert model_numba.kernel(10) is None and not model_numba.loaded()
     assert model_numba.whitening_kernel(10) is None
     usable = model_numba.kernel(model_numba.LOAD_FOR_ROWS) is not None

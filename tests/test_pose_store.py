@@ -372,9 +372,71 @@ def test_running_sums_are_those_of_adding_the_rows_one_at_a_time():
         for i in range(k):
             run = start[i].copy() if first[i] else run + rows[i - 1]
             want[i] = run + 0.0
-        got = _running_sums(start, rows, first)
-        np.testing.assert_array_equal(got, want)
-        assert not np.signbit(got[got == 0]).any()
+        for accelerate in ways_of_running_sums():
+            got = _running_sums(start, rows, first, accelerate=accelerate)
+            np.testing.assert_array_equal(got, want, err_msg=str(accelerate))
+            assert not np.signbit(got[got == 0]).any()
+
+
+def ways_of_running_sums() -> list:
+    """The numpy code (False), and the numba kernel itself when numba is installed."""
+    import importlib.util
+
+    if importlib.util.find_spec("numba") is None:
+        return [False]
+    from selfcal import _store_jit
+
+    return [False, _store_jit.running_sums]
+
+
+def test_the_store_is_the_same_with_and_without_the_running_sums_kernel(monkeypatch):
+    """A store fed a month of windows in many calls, with the bound reached and invalid
+    windows among them: the same cells, sums and counters with the kernel loaded and with
+    SELFCAL_NUMBA=0; the kernel passes its first-use check here, and a kernel wrong by one
+    ulp in one column is refused (with a warning) and the numpy code runs."""
+    import importlib.util
+
+    import pytest
+
+    from selfcal import store_numba
+    from selfcal.poses import PoseConfig
+
+    if importlib.util.find_spec("numba") is None:
+        pytest.skip("numba is not installed (pip install 'selfcal[fast]')")
+    monkeypatch.setenv("SELFCAL_NUMBA", "1")
+    assert store_numba.load() and store_numba.kernel() is not None
+    rng = np.random.default_rng(31)
+    mean, sd, n, t, temp = windows(rng, 5000)
+    n = n.astype(float)
+    n[rng.choice(len(n), 40, replace=False)] = 0.0
+    stores = []
+    for switch in ("1", "0"):
+        monkeypatch.setenv("SELFCAL_NUMBA", switch)
+        assert (store_numba.kernel() is not None) == (switch == "1")
+        store = PoseStore.empty(PoseConfig(max_cells=150))
+        for i in range(0, len(t), 37):
+            store.add(mean[i:i + 37], sd[i:i + 37], n[i:i + 37], t[i:i + 37], temp[i:i + 37])
+        stores.append(store)
+    _assert_same_store(*stores)
+    assert stores[0].n_merged > 0 and stores[0].n_gated > 0
+    assert (stores[0].n_merged, stores[0].n_dropped, stores[0].n_seen) == (
+        stores[1].n_merged, stores[1].n_dropped, stores[1].n_seen)
+
+    from selfcal import _store_jit
+
+    real = _store_jit.running_sums
+
+    def off_by_one_ulp(start_rows, rows, first, out):
+        real(start_rows, rows, first, out)
+        out[:, 2] = np.nextafter(out[:, 2], np.inf)
+
+    assert store_numba._same_as_numpy(real) and not store_numba._same_as_numpy(off_by_one_ulp)
+    monkeypatch.setenv("SELFCAL_NUMBA", "1")
+    monkeypatch.setattr(_store_jit, "running_sums", off_by_one_ulp)
+    monkeypatch.setattr(store_numba.RUNNING_SUMS, "_found", [])
+    with pytest.warns(RuntimeWarning, match="pose store's numba kernel differs"):
+        assert not store_numba.load()
+    assert store_numba.kernel() is None
 
 
 def test_the_bound_coarsens_until_every_group_fits_before_it_drops_a_window():
