@@ -151,14 +151,14 @@ def warm_up() -> None:
     """Load (or compile into numba's cache) the simulator planner's, the detector's and the
     error models' and the pose store's kernels in this process, as a long run has them after
     its first seconds."""
-    from selfcal import model_numba, store_numba
+    from selfcal import model_numba, sums_numba
     from selfcal.detect_numba import kernels_now
     from selfcal.sim import plan_numba
 
     plan_numba.kernels()
     kernels_now()
     model_numba.load()
-    store_numba.load()
+    sums_numba.load()
 
 
 def start_dask(workers: int) -> tuple:
@@ -196,8 +196,8 @@ def print_long(cfg: dict, days: float, refit_every_days: float, seed: int, effec
 _STARTUP = (
     "import time; t0 = time.perf_counter(); import selfcal.replay; "
     "from selfcal.sim import plan_numba; from selfcal.detect_numba import kernels_now; "
-    "from selfcal import model_numba, store_numba; plan_numba.kernels(); kernels_now(); model_numba.load(); "
-    "store_numba.load(); "
+    "from selfcal import model_numba, sums_numba; plan_numba.kernels(); kernels_now(); model_numba.load(); "
+    "sums_numba.load(); "
     "print(time.perf_counter() - t0)"
 )
 

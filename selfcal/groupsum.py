@@ -16,7 +16,7 @@ import numpy as np
 _FEW_ROWS = 8
 
 
-def sum_by_group(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.ndarray:
+def sum_by_group(group: np.ndarray, values: np.ndarray, n_groups: int, accelerate=None) -> np.ndarray:
     """Per-group sums of ``values``, the result of ``np.add.at(zeros, group, values)``.
 
     Parameters
@@ -24,6 +24,8 @@ def sum_by_group(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.nda
     group : ndarray of int, shape (k,) — group of each row, ``0 <= group < n_groups``
     values : ndarray, shape (k,) or (k, c) — any unit (the sums keep it)
     n_groups : int
+    accelerate : None uses the kernel of :mod:`selfcal.sums_numba` once it is loaded (the
+        same additions in the same order, in one call), False the numpy code; or a kernel
 
     Returns
     -------
@@ -37,6 +39,15 @@ def sum_by_group(group: np.ndarray, values: np.ndarray, n_groups: int) -> np.nda
         raise IndexError(f"sum_by_group: groups must be 0 .. {n_groups - 1}, got {group.min()} .. {group.max()}")
     if values.ndim == 1:
         return np.bincount(group, weights=values, minlength=n_groups).astype(float, copy=False)
+    if accelerate is None and values.shape[0] > _FEW_ROWS:
+        from selfcal.sums_numba import kernels
+
+        found = kernels()
+        accelerate = None if found is None else found.sum_by_group
+    if accelerate is not None and accelerate is not False:
+        out = np.zeros((n_groups, values.shape[1]))
+        accelerate(group.astype(np.int64, copy=False), np.ascontiguousarray(values), out)
+        return out
     if values.shape[0] <= _FEW_ROWS:  # a service batch's windows: row by row, the same additions
         out = np.zeros((n_groups, values.shape[1]))
         for i, g in enumerate(group.tolist()):

@@ -69,8 +69,8 @@ class CheckedKernel:
                           RuntimeWarning, stacklevel=2)
             return None
         if not ok:
-            warnings.warn(f"selfcal: {self.label} differs from the numpy code on this machine; running the "
-                          "numpy code", RuntimeWarning, stacklevel=2)
+            warnings.warn(f"selfcal: {self.label} gave other results than the numpy code on this machine; "
+                          "running the numpy code", RuntimeWarning, stacklevel=2)
             return None
         return kern
 

@@ -142,7 +142,7 @@ def _running_sums(start_rows: np.ndarray, rows: np.ndarray, first: np.ndarray, a
     sequential cumsum per group when the groups are few, else one vectorised step per
     position in a group (the loop runs min(groups, longest group) times).
 
-    ``accelerate``: None uses the kernel of :mod:`selfcal.store_numba` once it is loaded
+    ``accelerate``: None uses the kernel of :mod:`selfcal.sums_numba` once it is loaded
     (the same additions in the same order, in one call), False the numpy code; or a kernel.
     """
     k = rows.shape[0]
@@ -150,9 +150,10 @@ def _running_sums(start_rows: np.ndarray, rows: np.ndarray, first: np.ndarray, a
     if k == 0:
         return out
     if accelerate is None:
-        from selfcal.store_numba import kernel
+        from selfcal.sums_numba import kernels
 
-        accelerate = kernel()
+        found = kernels()
+        accelerate = None if found is None else found.running_sums
     if accelerate is not None and accelerate is not False:
         accelerate(np.ascontiguousarray(start_rows, dtype=float), np.ascontiguousarray(rows, dtype=float),
                    np.ascontiguousarray(first, dtype=bool), out)

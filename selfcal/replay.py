@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from selfcal import model_numba, store_numba
+from selfcal import model_numba, sums_numba
 from selfcal.attitude import roll_pitch_deg
 from selfcal.calibrator import OnlineCalibrator
 from selfcal.config import section
@@ -72,14 +72,18 @@ TILT_WINDOWS_MAX = 20_000
 class TruthMetrics:
     """Metrics of a model (normalised = g units) against a simulated sensor's truth."""
 
-    def __init__(self, sim: Simulation, poses, max_windows: int = TILT_WINDOWS_MAX):
+    def __init__(self, sim: Simulation, poses, max_windows: int = TILT_WINDOWS_MAX, rows: np.ndarray | None = None):
+        """``rows`` (int, ascending): the windows of ``poses`` that count (default all); the
+        tilt is scored on every ``ceil(len(rows) / max_windows)``-th of them."""
         self.sensor = sim.truth.sensor
         self.truth_params = np.array([self.sensor.params()[n] for n in BASE_NAMES])
         q, _ = canonical_qr(self.sensor.matrix)
         self.q = q
         self.dirs = sphere_directions()
-        stride = max(1, -(-len(poses.t_s) // max_windows))
-        poses = SimpleNamespace(**{k: getattr(poses, k)[::stride] for k in ("mean_g", "temp_c", "t_s", "a_true_g")})
+        rows = np.arange(len(poses.t_s)) if rows is None else np.asarray(rows)
+        stride = max(1, -(-len(rows) // max_windows))
+        pick = rows[::stride]
+        poses = SimpleNamespace(**{k: getattr(poses, k)[pick] for k in ("mean_g", "temp_c", "t_s", "a_true_g")})
         self.poses = poses
         # reference for tilt: the truth in the sensor's canonical frame
         self.a_ref = poses.a_true_g @ q  # rows: Q^T a
@@ -264,7 +268,7 @@ def replay(
     clock = StageClock()
     if days >= plan_numba.LOAD_FOR_DAYS:  # the fits' and the store's kernels pay for their load over a run this long
         model_numba.load()
-        store_numba.load()
+        sums_numba.load()
     rng = np.random.default_rng(seed)
     with clock("simulation"):
         sim = Simulation(sim_cfg, rng, days=days, seed=seed)
@@ -272,7 +276,6 @@ def replay(
     cal_cfg = _protocol_config(config, refit_every_days)
     sd_max = float(section(cal_cfg, "detector").get("sd_max_g", 0.010))
     keep = np.all(poses.sd_g <= sd_max, axis=1)
-    from selfcal.sim.simulator import PoseTable
 
     soak_info = {"dropped": not soaks, "n_soaks": 0, "n_windows": 0}
     if not soaks:
@@ -285,10 +288,11 @@ def replay(
         for run in runs:
             keep[keep_idx[run]] = False
         soak_info.update(n_soaks=len(runs), n_windows=int(sum(r.stop - r.start for r in runs)))
-    if not keep.all():  # the same rows as [keep]; np.compress is ~2x faster on (n, 3) rows
-        poses = PoseTable(**{k: np.compress(keep, getattr(poses, k), axis=0) for k in PoseTable.__dataclass_fields__})
+    # the windows kept are taken period by period (below), not copied into a second table
+    # of the whole run (a year's is ~0.5 GB, most of its cost memory touched for the first time)
+    kept = np.flatnonzero(keep)
     with clock("scores"):
-        metrics = TruthMetrics(sim, poses)
+        metrics = TruthMetrics(sim, poses, rows=kept)
     init_rng = np.random.default_rng([seed, 1])
     theta0 = init_rng.uniform(0.0, 1.0, ErrorModel(model).n_params) if random_init else None
     cal = OnlineCalibrator(cal_cfg, model, initial_params_u=theta0)
@@ -326,16 +330,18 @@ def replay(
     shared_detector = cal.det_cfg == online.det_cfg
     pending = None
     prev = 0.0
+    # in time order, a period's windows are a slice of the table (two searches, not two
+    # passes over the run), of which the kept ones are fed; else a mask picks the same rows
     in_time_order = bool(np.all(np.diff(poses.t_s) >= 0))
     for b in boundaries:
         lo, hi, prev = prev * SECONDS_PER_DAY, b * SECONDS_PER_DAY, b
         if b <= done_until + 1e-9:
             continue
-        if in_time_order:  # the period's windows are a slice: two searches, not two passes over the year
+        if in_time_order:
             i0, i1 = np.searchsorted(poses.t_s, [lo, hi], side="left")
-            sel = slice(int(i0), int(i1))
+            sel = int(i0) + np.flatnonzero(keep[int(i0):int(i1)])
         else:
-            sel = (poses.t_s >= lo) & (poses.t_s < hi)
+            sel = keep & (poses.t_s >= lo) & (poses.t_s < hi)
         if level == "poses":
             args = (poses.mean_g[sel], poses.sd_g[sel], poses.n[sel], poses.t_s[sel] + poses.duration_s[sel] / 2,
                     poses.temp_c[sel])
@@ -426,7 +432,7 @@ def replay(
         "initial": initial,
         "refits": refits,
         "time_to_calibrated_h": first_calibrated_h,
-        "n_still_windows": int(len(poses)),
+        "n_still_windows": int(len(kept)),
         "wall_s": time.perf_counter() - t0_wall,
         "stage_s": clock.seconds(),
         "truth": {"params": truth.params(), "effects": truth.model_params(),
@@ -586,7 +592,7 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
         plan_numba.kernels(float(kwargs.get("days", 30.0)) * devices / workers)
         if float(kwargs.get("days", 30.0)) * devices / workers >= plan_numba.LOAD_FOR_DAYS:
             model_numba.load()  # the fits' and the store's kernels, likewise
-            store_numba.load()
+            sums_numba.load()
         if kwargs.get("level") == "samples":
             from selfcal.detect_numba import kernels_now
 

@@ -384,27 +384,28 @@ def ways_of_running_sums() -> list:
 
     if importlib.util.find_spec("numba") is None:
         return [False]
-    from selfcal import _store_jit
+    from selfcal import _sums_jit
 
-    return [False, _store_jit.running_sums]
+    return [False, _sums_jit.running_sums]
 
 
-def test_the_store_is_the_same_with_and_without_the_running_sums_kernel(monkeypatch):
-    """A store fed a month of windows in many calls, with the bound reached and invalid
-    windows among them: the same cells, sums and counters with the kernel loaded and with
-    SELFCAL_NUMBA=0; the kernel passes its first-use check here, and a kernel wrong by one
-    ulp in one column is refused (with a warning) and the numpy code runs."""
+def test_the_store_is_the_same_with_and_without_the_sums_kernels(monkeypatch):
+    """A store fed 5 000 windows in calls of 37, with the bound reached and invalid windows
+    among them: the same cells, sums and counters with the sums' kernels loaded and with
+    SELFCAL_NUMBA=0; the kernels pass their first-use check here, and either kernel wrong
+    by one ulp in one column is refused (with a warning) and the numpy code runs."""
     import importlib.util
+    from types import SimpleNamespace
 
     import pytest
 
-    from selfcal import store_numba
+    from selfcal import sums_numba
     from selfcal.poses import PoseConfig
 
     if importlib.util.find_spec("numba") is None:
         pytest.skip("numba is not installed (pip install 'selfcal[fast]')")
     monkeypatch.setenv("SELFCAL_NUMBA", "1")
-    assert store_numba.load() and store_numba.kernel() is not None
+    assert sums_numba.load() and sums_numba.kernels() is not None
     rng = np.random.default_rng(31)
     mean, sd, n, t, temp = windows(rng, 5000)
     n = n.astype(float)
@@ -412,7 +413,7 @@ def test_the_store_is_the_same_with_and_without_the_running_sums_kernel(monkeypa
     stores = []
     for switch in ("1", "0"):
         monkeypatch.setenv("SELFCAL_NUMBA", switch)
-        assert (store_numba.kernel() is not None) == (switch == "1")
+        assert (sums_numba.kernels() is not None) == (switch == "1")
         store = PoseStore.empty(PoseConfig(max_cells=150))
         for i in range(0, len(t), 37):
             store.add(mean[i:i + 37], sd[i:i + 37], n[i:i + 37], t[i:i + 37], temp[i:i + 37])
@@ -422,93 +423,50 @@ def test_the_store_is_the_same_with_and_without_the_running_sums_kernel(monkeypa
     assert (stores[0].n_merged, stores[0].n_dropped, stores[0].n_seen) == (
         stores[1].n_merged, stores[1].n_dropped, stores[1].n_seen)
 
-    from selfcal import _store_jit
+    from selfcal import _sums_jit
 
-    real = _store_jit.running_sums
+    real = sums_numba._load()
 
-    def off_by_one_ulp(start_rows, rows, first, out):
-        real(start_rows, rows, first, out)
-        out[:, 2] = np.nextafter(out[:, 2], np.inf)
+    def off(kernel):
+        def wrong(*args):
+            kernel(*args)
+            out = args[-1]
+            out[:, 2] = np.nextafter(out[:, 2], np.inf)
+        return wrong
 
-    assert store_numba._same_as_numpy(real) and not store_numba._same_as_numpy(off_by_one_ulp)
-    monkeypatch.setenv("SELFCAL_NUMBA", "1")
-    monkeypatch.setattr(_store_jit, "running_sums", off_by_one_ulp)
-    monkeypatch.setattr(store_numba.RUNNING_SUMS, "_found", [])
-    with pytest.warns(RuntimeWarning, match="pose store's numba kernel differs"):
-        assert not store_numba.load()
-    assert store_numba.kernel() is None
-
-
-def test_the_bound_coarsens_until_every_group_fits_before_it_drops_a_window():
-    """15 directions, a bound of 16 cells: all of a month's windows fit once each direction's
-    cells are merged. The bound gave up after 8 coarsening passes (a new cell needs up to
-    15 to reach its group's oldest) and dropped the oldest cells, which were the largest:
-    134 of 4320 windows kept."""
-    from selfcal.poses import PoseConfig
-
-    for n_dirs in (10, 15):
-        rng = np.random.default_rng(0)
-        dirs = rng.standard_normal((n_dirs, 3))
-        dirs /= np.linalg.norm(dirs, axis=1)[:, None]
-        k = 2 * 24 * 30  # a window every 30 min for 30 days
-        t = 1800.0 * np.arange(k)
-        mean = dirs[rng.integers(0, n_dirs, k)] * (1 + 1e-3 * rng.standard_normal((k, 1)))
-        store = PoseStore.empty(PoseConfig(max_cells=16))
-        for i in range(0, k, 240):
-            store.add(mean[i:i + 240], np.full((len(t[i:i + 240]), 3), 2e-3), 40.0, t[i:i + 240], 25.0)
-        assert store.n_dropped == 0 and int(store.stats[:, 0].sum()) == k and len(store) <= 16
+    assert sums_numba._same_as_numpy(real)
+    for name in ("running_sums", "sum_by_group"):
+        broken = SimpleNamespace(**{**vars(real), name: off(getattr(real, name))})
+        assert not sums_numba._same_as_numpy(broken), name
+        monkeypatch.setenv("SELFCAL_NUMBA", "1")
+        monkeypatch.setattr(_sums_jit, name, getattr(broken, name))
+        monkeypatch.setattr(sums_numba.SUMS, "_found", [])
+        with pytest.warns(RuntimeWarning, match="sums' numba kernels gave other results"):
+            assert not sums_numba.load()
+        assert sums_numba.kernels() is None
+        monkeypatch.setattr(_sums_jit, name, getattr(real, name))
 
 
-def test_a_window_with_an_infinite_sd_is_refused_not_stored_as_a_quiet_one():
-    for sd, added in ((np.inf, 0), (1e300, 0), (np.nan, 1), (3e-3, 1)):  # NaN: the default sd
-        out = PoseStore.empty().add([[0.0, 0.0, 1.0]], [[2e-3, 2e-3, sd]], [40], [0.0])
-        assert out["added"] == added, sd
+def test_group_sums_are_those_of_np_add_at_for_numpy_and_the_kernel():
+    """``sum_by_group`` is ``np.add.at`` into zeros bit for bit, by the numpy code and by the
+    kernel: groups in any order, empty groups, signed zeros, one row and many."""
+    from selfcal.groupsum import sum_by_group
 
+    ways = [False]
+    import importlib.util
 
-def test_a_saved_store_whose_cells_disagree_is_refused_at_load():
-    import pytest
+    if importlib.util.find_spec("numba") is not None:
+        from selfcal import _sums_jit
 
-    store = PoseStore.empty()
-    store.add(np.tile([0.0, 0.0, 1.0], (3, 1)) + np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]]) * 0.7,
-              np.full((3, 3), 2e-3), 40.0, np.array([0.0, 10.0, 20.0]), 25.0)
-    state = store.to_json()
-    assert len(PoseStore.from_json(state)) == len(store) > 1
-    for broken in ({**state, "key": state["key"][:-1]}, {**state, "key": [state["key"][0]] * len(state["key"])}):
-        with pytest.raises(ValueError, match="pose store"):
-            PoseStore.from_json(broken)
-
-
-def test_the_blocks_an_add_works_in_change_no_cell_and_no_window_taken(monkeypatch):
-    """``add`` hands its windows to its steps in blocks (``ADD_BLOCK_WINDOWS``, doubled after
-    a block taken whole), not the whole rest of the batch each time. Whatever the block, the
-    store, its counters and the windows a capped call takes are those of one block: with the
-    bound reached many times in the call, invalid windows (NaN, n = 0) among the others, and
-    a cap on new cells."""
-    import selfcal.poses as poses_mod
-    from selfcal.poses import PoseConfig
-
-    cfg = PoseConfig(max_cells=120)
-    for seed in (21, 22):
-        rng = np.random.default_rng(seed)
-        mean, sd, n, t, temp = windows(rng, 2600)
-        n = n.astype(float)
-        bad = rng.choice(len(t), 60, replace=False)
-        mean[bad[:30]] = np.nan
-        n[bad[30:]] = 0.0
-        runs = {}
-        for block in (10**9, 1, 5, 64, 2048):
-            monkeypatch.setattr(poses_mod, "ADD_BLOCK_WINDOWS", block)
-            whole = PoseStore.empty(cfg)
-            out = whole.add(mean, sd, n, t, temp)
-            capped = PoseStore.empty(cfg)
-            capped.add(mean[:900], sd[:900], n[:900], t[:900], temp[:900])
-            taken = [capped.add(mean[i:], sd[i:], n[i:], t[i:], temp[i:], max_new_cells=k)
-                     for i, k in ((900, 7), (1300, 40), (1700, 1))]
-            runs[block] = (whole, out, capped, taken)
-        ref_whole, ref_out, ref_capped, ref_taken = runs[10**9]
-        assert ref_whole.n_merged > 0 and ref_out["bounded"]
-        for block, (whole, out, capped, taken) in runs.items():
-            assert out == ref_out and taken == ref_taken, block
-            for a, b in ((whole, ref_whole), (capped, ref_capped)):
-                _assert_same_store(a, b)
-                assert (a.n_merged, a.n_dropped, a.n_seen) == (b.n_merged, b.n_dropped, b.n_seen), block
+        ways.append(_sums_jit.sum_by_group)
+    rng = np.random.default_rng(5)
+    for k, n_groups, cols in ((1, 1, 3), (5, 9, 2), (300, 40, 17), (2000, 7, 5)):
+        group = rng.integers(0, n_groups, k)
+        values = rng.normal(0.0, 1.0, (k, cols)) * 10.0 ** rng.integers(-8, 8, (k, 1))
+        values[rng.random((k, cols)) < 0.1] = -0.0
+        want = np.zeros((n_groups, cols))
+        np.add.at(want, group, values)
+        for accelerate in ways:
+            got = sum_by_group(group, values, n_groups, accelerate=accelerate)
+            np.testing.assert_array_equal(got, want, err_msg=str(accelerate))
+            assert np.array_equal(np.signbit(got), np.signbit(want))

@@ -1,6 +1,7 @@
-"""The pose store's numba kernel (imported only through :mod:`selfcal.store_numba`): each
-group's running sums, row by row, the additions of :func:`selfcal.poses._running_sums` in
-the same order (no fastmath), so the same values bit for bit (checked at first use)."""
+"""numba kernels of the running and per-group sums (imported only through
+:mod:`selfcal.sums_numba`): the additions of :func:`selfcal.poses._running_sums` and of
+:func:`selfcal.groupsum.sum_by_group` in the same order (no fastmath), so the same values
+bit for bit (checked at first use)."""
 
 from __future__ import annotations
 
@@ -24,3 +25,15 @@ def running_sums(start_rows, rows, first, out):
     for i in range(k):
         for c in range(m):
             out[i, c] = out[i, c] + 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def sum_by_group(group, values, out):
+    """Add each row of ``values`` (k, c) float64 to ``out[group[i]]`` ((n_groups, c), zeros
+    on entry), in input order: ``np.add.at(out, group, values)``, as ``np.bincount`` with
+    weights does it column by column."""
+    k, c = values.shape
+    for i in range(k):
+        g = group[i]
+        for j in range(c):
+            out[g, j] += values[i, j]
