@@ -585,9 +585,15 @@ class OnlineCalibrator:
             the current model's fit on them)."""
             if with_temp not in prepared:
                 mask = np.isfinite(temps) if with_temp else np.ones(len(self.store), dtype=bool)
-                data = self._pose_data(mask, t_now)
-                fit, data, cfg, c_noise = self._fit_store(data, mask, self.prior(), theta)
-                prepared[with_temp] = (mask, data, cfg, {}, fit, c_noise)
+                other = prepared.get(not with_temp)
+                if other is not None and np.array_equal(other[0], mask):
+                    # every cell has a temperature: the same cells, so the same fits (and
+                    # held-out residuals) as the other key's, not made twice
+                    prepared[with_temp] = other
+                else:
+                    data = self._pose_data(mask, t_now)
+                    fit, data, cfg, c_noise = self._fit_store(data, mask, self.prior(), theta)
+                    prepared[with_temp] = (mask, data, cfg, {}, fit, c_noise)
             return prepared[with_temp][:5]
 
         try:

@@ -326,3 +326,42 @@ def test_a_model_that_takes_no_step_still_decides_its_checks():
     assert cal.selection["n_checks"] >= 10
     assert not [c for c in cal.selection["checks"] if str(c["decision"]).startswith("not decided")]
     assert not cal.selection.get("steps")
+
+
+@pytest.mark.parametrize("missing_temps", [False, True])
+def test_a_check_fits_the_current_model_once_when_every_cell_has_a_temperature(missing_temps, monkeypatch):
+    """A check asks its temperature candidates on the cells with a temperature and the
+    others on every cell: when every cell has one, those are the same cells, and the current
+    model's fit is made once and serves both (the fit made apart is the same bit for bit);
+    when some cells have none, both are fitted."""
+    cfg, _, args = _poses(21, 4.0)
+    mean, sd, n, t, temp = (np.array(a, dtype=float) for a in args)
+    if missing_temps:
+        temp[::5] = np.nan  # every fifth window without a temperature: some cells have none
+    cal = OnlineCalibrator(cfg, "affine9")
+    cal.feed_poses(mean, sd, n, t, temp)
+    assert cal.current is not None and len(cal.store) >= cal.sel_cfg.min_cells
+    fits = []
+    real = OnlineCalibrator._fit_store
+
+    def counted(self, *a, **k):
+        fits.append(a[1].copy())  # the mask of cells fitted
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(OnlineCalibrator, "_fit_store", counted)
+    prepared: dict = {}
+    t_now = float(cal.t_last_s)
+    cal._select(t_now, prepared)
+    has_temp = np.isfinite(cal.store.mean_temp())
+    assert has_temp.all() != missing_temps
+    assert len(fits) == (2 if missing_temps else 1)
+    assert set(prepared) == {False, True}
+    assert (prepared[True] is prepared[False]) == (not missing_temps)
+    # what the shared entry holds is what a fit of the temperature cells alone gives
+    mask, data, fit_cfg, _, fit, _ = prepared[True]
+    assert np.array_equal(mask, has_temp)
+    monkeypatch.setattr(OnlineCalibrator, "_fit_store", real)
+    alone, _, _, _ = cal._fit_store(cal._pose_data(has_temp, t_now), has_temp, cal.prior(),
+                                    np.asarray(cal.current["theta_u"], float))
+    for name in ("theta_u", "cov_u", "residuals_g", "sigma_g"):
+        assert np.array_equal(getattr(alone, name), getattr(fit, name)), name
