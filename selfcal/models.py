@@ -456,7 +456,6 @@ class ErrorModel:
              none if after is None else after, self.base == "affine9", *self._kernel_index, r, jac)
         return r, jac
 
-
     def _whitened_kernel(self, kern, theta, raw, temp_c, t_s, var_axis, floor2) -> tuple:
         """``(r, jac, r / sigma, d(r / sigma) / d theta)`` by the whitening kernel ``kern``
         (:func:`selfcal._model_jit.whitened_residual_jac`; scale6, affine9): ``sigma``

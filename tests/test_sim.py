@@ -444,6 +444,35 @@ def test_the_schedule_table_by_column_is_the_table_by_row():
     assert wearer._rows_kept(odd) is odd
 
 
+def test_a_plan_with_segments_dropped_in_its_middle_keeps_every_other_row_as_it_was():
+    """Segments shorter than half a sample (and those past the end) are dropped when a plan
+    is finished; the kept rows' columns are compacted in place: each column of the schedule
+    is the planned table's column with those rows removed, in order."""
+    from selfcal.sim import wearer
+
+    cfg = SimConfig()
+    rng = np.random.default_rng(12)
+    rows = rng.normal(size=(40, len(wearer._COLUMNS)))
+    rows[:, 0] = rng.uniform(1.0, 100.0, 40)  # durations, s
+    rows[[3, 17, 18, 30], 0] = 0.01  # shorter than half a sample at 20 Hz: dropped
+    rows[:, 1] = 1.0  # an activity code
+    b = wearer._Builder(cfg, np.random.default_rng(13))
+    b.add_block(rows[:25].copy())
+    b.add_block(rows[25:].copy())
+    total_s = float(np.sum(rows[:36, 0]))  # the last rows lie past the end
+    s = wearer._finish(b, cfg, 20.0, total_s, np.full((2, 3), 20.0))
+    t_start = np.r_[0.0, np.cumsum(rows[:, 0])[:-1]]
+    i0 = np.rint(t_start * 20.0).astype(np.int64)
+    i1 = np.rint(np.minimum(t_start + rows[:, 0], total_s) * 20.0).astype(np.int64)
+    keep = (t_start < total_s) & (i1 > i0)
+    assert 0 < keep.sum() < 36 and not keep[[3, 17]].any()
+    for name, col in (("pitch0", 3), ("roll0", 4), ("pitch1", 5), ("roll1", 6), ("sd_g", 7), ("cycle_s", 8),
+                      ("climb", 11)):
+        assert np.array_equal(getattr(s, name), rows[keep, col]), name
+    assert np.array_equal(s.load, rows[keep][:, 12:16]) and np.array_equal(s.start, i0[keep])
+    assert np.array_equal(s.n, (i1 - i0)[keep]) and np.array_equal(s.still_id, rows[keep, 16].astype(np.int64))
+
+
 # ------------------------------------------------------------------ config and truth
 def test_config_validation_and_toml_defaults():
     from selfcal.config import load_config, section

@@ -505,7 +505,8 @@ def _rows_kept(keep: np.ndarray) -> slice | np.ndarray:
 
 
 def _finish(b: _Builder, config: SimConfig, rate: float, total_s: float, day_draws: np.ndarray) -> Schedule:
-    cols = dict(zip(_COLUMNS, b.columns()))
+    table = b.columns()
+    cols = dict(zip(_COLUMNS, table))
     t_start = np.r_[0.0, np.cumsum(cols["dur_s"])[:-1]]
     keep = t_start < total_s
     t_end = np.minimum(t_start + cols["dur_s"], total_s)
@@ -513,8 +514,16 @@ def _finish(b: _Builder, config: SimConfig, rate: float, total_s: float, day_dra
     i1 = np.rint(t_end * rate).astype(np.int64)
     keep &= i1 > i0
     take = _rows_kept(keep)
-    sel = {k: v[take] for k, v in cols.items()}
     start, n = i0[take], (i1 - i0)[take]
+    if not isinstance(take, slice):
+        # a few rows (segments shorter than half a sample) are dropped from the middle: each
+        # column's kept values move to its front in place (one temporary a column, the same
+        # size each time, reused), not into 17 new arrays of the whole plan
+        k = len(start)
+        for row in table:
+            row[:k] = row[take]
+        take = slice(0, k)
+    sel = {name: v[take] for name, v in cols.items()}
     t0 = start / rate
     dur = n / rate
     act = sel["activity"].astype(np.int8)
