@@ -378,6 +378,81 @@ def test_running_sums_are_those_of_adding_the_rows_one_at_a_time():
             assert not np.signbit(got[got == 0]).any()
 
 
+def test_the_bound_coarsens_until_every_group_fits_before_it_drops_a_window():
+    """15 directions, a bound of 16 cells: all of a month's windows fit once each direction's
+    cells are merged. The bound gave up after 8 coarsening passes (a new cell needs up to
+    15 to reach its group's oldest) and dropped the oldest cells, which were the largest:
+    134 of 4320 windows kept."""
+    from selfcal.poses import PoseConfig
+
+    for n_dirs in (10, 15):
+        rng = np.random.default_rng(0)
+        dirs = rng.standard_normal((n_dirs, 3))
+        dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+        k = 2 * 24 * 30  # a window every 30 min for 30 days
+        t = 1800.0 * np.arange(k)
+        mean = dirs[rng.integers(0, n_dirs, k)] * (1 + 1e-3 * rng.standard_normal((k, 1)))
+        store = PoseStore.empty(PoseConfig(max_cells=16))
+        for i in range(0, k, 240):
+            store.add(mean[i:i + 240], np.full((len(t[i:i + 240]), 3), 2e-3), 40.0, t[i:i + 240], 25.0)
+        assert store.n_dropped == 0 and int(store.stats[:, 0].sum()) == k and len(store) <= 16
+
+
+def test_a_window_with_an_infinite_sd_is_refused_not_stored_as_a_quiet_one():
+    for sd, added in ((np.inf, 0), (1e300, 0), (np.nan, 1), (3e-3, 1)):  # NaN: the default sd
+        out = PoseStore.empty().add([[0.0, 0.0, 1.0]], [[2e-3, 2e-3, sd]], [40], [0.0])
+        assert out["added"] == added, sd
+
+
+def test_a_saved_store_whose_cells_disagree_is_refused_at_load():
+    import pytest
+
+    store = PoseStore.empty()
+    store.add(np.tile([0.0, 0.0, 1.0], (3, 1)) + np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]]) * 0.7,
+              np.full((3, 3), 2e-3), 40.0, np.array([0.0, 10.0, 20.0]), 25.0)
+    state = store.to_json()
+    assert len(PoseStore.from_json(state)) == len(store) > 1
+    for broken in ({**state, "key": state["key"][:-1]}, {**state, "key": [state["key"][0]] * len(state["key"])}):
+        with pytest.raises(ValueError, match="pose store"):
+            PoseStore.from_json(broken)
+
+
+def test_the_blocks_an_add_works_in_change_no_cell_and_no_window_taken(monkeypatch):
+    """``add`` hands its windows to its steps in blocks (``ADD_BLOCK_WINDOWS``, doubled after
+    a block taken whole), not the whole rest of the batch each time. Whatever the block, the
+    store, its counters and the windows a capped call takes are those of one block: with the
+    bound reached many times in the call, invalid windows (NaN, n = 0) among the others, and
+    a cap on new cells."""
+    import selfcal.poses as poses_mod
+    from selfcal.poses import PoseConfig
+
+    cfg = PoseConfig(max_cells=120)
+    for seed in (21, 22):
+        rng = np.random.default_rng(seed)
+        mean, sd, n, t, temp = windows(rng, 2600)
+        n = n.astype(float)
+        bad = rng.choice(len(t), 60, replace=False)
+        mean[bad[:30]] = np.nan
+        n[bad[30:]] = 0.0
+        runs = {}
+        for block in (10**9, 1, 5, 64, 2048):
+            monkeypatch.setattr(poses_mod, "ADD_BLOCK_WINDOWS", block)
+            whole = PoseStore.empty(cfg)
+            out = whole.add(mean, sd, n, t, temp)
+            capped = PoseStore.empty(cfg)
+            capped.add(mean[:900], sd[:900], n[:900], t[:900], temp[:900])
+            taken = [capped.add(mean[i:], sd[i:], n[i:], t[i:], temp[i:], max_new_cells=k)
+                     for i, k in ((900, 7), (1300, 40), (1700, 1))]
+            runs[block] = (whole, out, capped, taken)
+        ref_whole, ref_out, ref_capped, ref_taken = runs[10**9]
+        assert ref_whole.n_merged > 0 and ref_out["bounded"]
+        for block, (whole, out, capped, taken) in runs.items():
+            assert out == ref_out and taken == ref_taken, block
+            for a, b in ((whole, ref_whole), (capped, ref_capped)):
+                _assert_same_store(a, b)
+                assert (a.n_merged, a.n_dropped, a.n_seen) == (b.n_merged, b.n_dropped, b.n_seen), block
+
+
 def ways_of_running_sums() -> list:
     """The numpy code (False), and the numba kernel itself when numba is installed."""
     import importlib.util
