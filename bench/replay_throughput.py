@@ -148,9 +148,9 @@ def print_breakdown(breakdown: dict[str, tuple], device_days: float) -> None:
 
 
 def warm_up() -> None:
-    """Load (or compile into numba's cache) the simulator planner's, the detector's and the
-    error models' and the pose store's kernels in this process, as a long run has them after
-    its first seconds."""
+    """Load (or compile into numba's cache) the simulator planner's, the detector's, the
+    error models' and the sums' kernels in this process, as a long run has them after its
+    first seconds."""
     from selfcal import model_numba, sums_numba
     from selfcal.detect_numba import kernels_now
     from selfcal.sim import plan_numba

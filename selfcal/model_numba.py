@@ -18,8 +18,8 @@ empty one), about what the numpy code spends on ~20 000 rows: a call with fewer 
 :data:`LOAD_FOR_ROWS` uses the kernel only once something loaded it (:func:`load`: the
 replays, the service's refit workers).
 
-numba is optional (``pip install 'selfcal[fast]'``); ``SELFCAL_NUMBA=0`` switches this
-kernel off as it does the detector's (:mod:`selfcal.detect_numba`).
+numba is optional (``pip install 'selfcal[fast]'``); ``SELFCAL_NUMBA=0`` switches these
+kernels off as it does the detector's (:mod:`selfcal.detect_numba`).
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ CHECK_MODELS = (
     "affine9+temperature_bias+temperature_scale+time_drift_bias+scale_nonlinearity+temperature_cross+bias_step",
     "affine9+temperature_bias+temperature_cross",
 )
+
 
 def _load_residual_jac():
     from selfcal import _model_jit

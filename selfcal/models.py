@@ -445,15 +445,9 @@ class ErrorModel:
     def _residual_jac_kernel(self, kern, theta, raw, temp_c, t_s) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`residual_jac` by the kernel ``kern`` (scale6, affine9)."""
         n = raw.shape[0]
-        dtemp, dtime = self._covariates(n, temp_c, t_s)
-        after = self._after_step(n, t_s) if "bias_step" in self.effects else None
-        none = np.zeros(0)
         r = np.empty(n)
         jac = np.empty((n, self.n_params))
-        kern(np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(raw, dtype=float),
-             none if dtemp is None else np.ascontiguousarray(dtemp, dtype=float),
-             none if dtime is None else np.ascontiguousarray(dtime, dtype=float),
-             none if after is None else after, self.base == "affine9", *self._kernel_index, r, jac)
+        kern(*self._kernel_inputs(theta, raw, temp_c, t_s), r, jac)
         return r, jac
 
     def _whitened_kernel(self, kern, theta, raw, temp_c, t_s, var_axis, floor2) -> tuple:
@@ -464,17 +458,24 @@ class ErrorModel:
         if raw.ndim != 2 or raw.shape[1] != 3:
             raise InputError(f"raw: expected shape (n, 3), got {raw.shape}")
         n = raw.shape[0]
+        r, rw = np.empty(n), np.empty(n)
+        jac, jw = np.empty((n, self.n_params)), np.empty((n, self.n_params))
+        kern(*self._kernel_inputs(theta, raw, temp_c, t_s), np.ascontiguousarray(var_axis, dtype=float),
+             float(floor2), r, jac, rw, jw)
+        return r, jac, rw, jw
+
+    def _kernel_inputs(self, theta, raw, temp_c, t_s) -> tuple:
+        """The kernels' leading arguments for readings ``raw`` (n, 3): parameters, readings,
+        the covariates (empty where the model has no effect that reads them), the step
+        indicator, whether the cross-axis terms are there, and the effects' indices."""
+        n = raw.shape[0]
         dtemp, dtime = self._covariates(n, temp_c, t_s)
         after = self._after_step(n, t_s) if "bias_step" in self.effects else None
         none = np.zeros(0)
-        r, rw = np.empty(n), np.empty(n)
-        jac, jw = np.empty((n, self.n_params)), np.empty((n, self.n_params))
-        kern(np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(raw),
-             none if dtemp is None else np.ascontiguousarray(dtemp, dtype=float),
-             none if dtime is None else np.ascontiguousarray(dtime, dtype=float),
-             none if after is None else after, self.base == "affine9", *self._kernel_index,
-             np.ascontiguousarray(var_axis, dtype=float), float(floor2), r, jac, rw, jw)
-        return r, jac, rw, jw
+        return (np.ascontiguousarray(theta, dtype=float), np.ascontiguousarray(raw, dtype=float),
+                none if dtemp is None else np.ascontiguousarray(dtemp, dtype=float),
+                none if dtime is None else np.ascontiguousarray(dtime, dtype=float),
+                none if after is None else after, self.base == "affine9", *self._kernel_index)
 
 
 def _norm(a: np.ndarray) -> np.ndarray:
