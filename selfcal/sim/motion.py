@@ -33,6 +33,7 @@ from scipy.interpolate import PchipInterpolator
 from scipy.signal import lfilter
 
 from selfcal.sim.config import GaitConfig
+from selfcal.sim.draw_numba import standard_normal
 
 G_MPS2 = 9.80665
 
@@ -88,7 +89,7 @@ def lowpass_noise(rng: np.random.Generator, n: int, rate_hz: float, corner_hz: f
     ndarray, shape (n, dim), unit sd
     """
     alpha = float(np.exp(-2 * np.pi * corner_hz / rate_hz))
-    w = rng.standard_normal((n, dim))
+    w = standard_normal(rng, (n, dim))
     if alpha <= 1e-6:
         return w
     y = lfilter([1 - alpha], [1, -alpha], w, axis=0)
@@ -255,6 +256,6 @@ def gait_force(
             acc += blocks[:, i]
         np.divide(acc, os_, out=f[:, c])
     if cfg.midstance_sd_g > 0:
-        f += cfg.midstance_sd_g * rng.standard_normal((n, 3))
+        f += cfg.midstance_sd_g * standard_normal(rng, (n, 3))
     phase = (psi.reshape(n, os_)[:, os_ // 2]) % 1.0
     return f, phase

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from selfcal.sim.config import PressureConfig
+from selfcal.sim.draw_numba import standard_normal
 from selfcal.sim.motion import lowpass_noise
 
 #: Gait phase (0 = heel strike) of each channel's peak and its width (sd, cycle units).
@@ -103,7 +104,7 @@ def pressure_by_channel(
     p *= stand_kpa[:, None]
     p += cfg.offset_kpa
     if cfg.noise_kpa > 0:
-        noise = rng.standard_normal((n, 4))
+        noise = standard_normal(rng, (n, 4))
         noise *= cfg.noise_kpa
         p += noise.T
     return np.maximum(p, 0.0, out=p)

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from selfcal.sim.config import EFFECT_NAMES, EVENT_EFFECTS, SimConfig
+from selfcal.sim.draw_numba import standard_normal
 
 #: Unit of each effect coefficient in the config and in the truth (``coefficients``).
 EFFECT_UNITS = {
@@ -353,7 +354,7 @@ def read_out(truth: SensorTruth, raw_mean_g: np.ndarray, rng: np.random.Generato
     """
     raw = np.array(raw_mean_g, dtype=float, copy=True)
     if rng is not None and np.any(truth.noise_sd_g > 0):
-        noise = rng.standard_normal(raw.shape)
+        noise = standard_normal(rng, raw.shape)
         noise *= truth.noise_sd_g
         raw += noise
     if truth.lsb_g > 0:

@@ -18,7 +18,9 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from selfcal.sim import draw_numba
 from selfcal.sim.config import SimConfig
+from selfcal.sim.draw_numba import standard_normal
 from selfcal.sim.motion import gait_force, gravity_foot, lowpass_noise, move_force
 from selfcal.sim.pressure import pressure_by_channel
 from selfcal.sim.sensor import SensorTruth, draw_sensor_truth, read_out, sensor_mean
@@ -171,6 +173,11 @@ class SimTruth:
         return cls.from_dict(json.loads(Path(path).read_text()))
 
 
+#: Standard normals a 20-Hz sample draws at least: 3 of sensor noise, 4 of pressure
+#: noise and 1 of reported temperature (sway and gait draw more on their samples).
+NORMALS_PER_SAMPLE = 8
+
+
 class Simulation:
     """One device worn by one simulated person for ``days``.
 
@@ -240,6 +247,8 @@ class Simulation:
         """
         rngs = {k: self._rng(k) for k in ("motion", "noise", "radio", "pressure", "temperature")}
         bounds = self.chunk_bounds(chunk_s)
+        # a long stream loads the normal draws' kernel (the same numbers): 8 and more a sample
+        draw_numba.kernel(draws=NORMALS_PER_SAMPLE * float(self.schedule.n.sum()))
         it = bounds
         if progress:
             from tqdm import tqdm
@@ -327,6 +336,7 @@ class Simulation:
         """
         s, cfg, rate = self.schedule, self.config, self.rate_hz
         rng = self._rng("poses")
+        draw_numba.kernel(draws=8.0 * len(s.n))  # ~8 normals a window, less than one window a segment
         st_start, st_n, st_seg = s.still_periods()
         trim = int(round(cfg.pose_trim_s * rate))
         st_start, st_n = st_start + trim, st_n - 2 * trim
@@ -356,10 +366,10 @@ class Simulation:
         dof = np.maximum(n_recv - 1, 1)
         # the draws, whole and in this order (the stream's numbers); the arithmetic on them
         # is done in place, by blocks of windows (:attr:`POSE_BLOCK`)
-        mean_g = rng.standard_normal((m, 3))
+        mean_g = standard_normal(rng, (m, 3))
         sd_g = rng.chisquare(np.broadcast_to(dof[:, None].astype(float), (m, 3)))
-        temp_rep = rng.standard_normal(m)
-        press = rng.standard_normal((m, 4))
+        temp_rep = standard_normal(rng, m)
+        press = standard_normal(rng, (m, 4))
         sway = s.sd_g[seg0]
         alpha = np.exp(-2 * np.pi * cfg.posture.sway_corner_hz / rate)
         corr = (1 + alpha) / (1 - alpha)
@@ -438,7 +448,7 @@ def _report_temperature(temp_true_c: np.ndarray, cfg: SimConfig, rng: np.random.
     tc = cfg.temperature
     t = temp_true_c
     if tc.noise_sd_c > 0:
-        t = t + tc.noise_sd_c * rng.standard_normal(len(t))
+        t = t + tc.noise_sd_c * standard_normal(rng, len(t))
     if tc.lsb_c > 0:
         t = np.round(t / tc.lsb_c) * tc.lsb_c
     return t
