@@ -6,6 +6,7 @@ the generator where numpy would (checked at first use)."""
 from __future__ import annotations
 
 import numba
+import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
@@ -15,3 +16,25 @@ def fill_standard_normal(rng, out):
     flat = out.reshape(-1)
     for i in range(flat.size):
         flat[i] = rng.standard_normal()
+
+
+@numba.njit(cache=True, nogil=True)
+def lowpass(rng, n, dim, alpha, gain):
+    """:func:`selfcal.sim.motion.lowpass_noise` (n, dim): the normals drawn in C order, each
+    column filtered as ``scipy.signal.lfilter([1 - alpha], [1, -alpha])`` does (direct form
+    II transposed: ``y = z + b0 x``, then ``z = x b1 - y a1`` with ``b1 = 0``, ``a1 = -alpha``),
+    times ``gain``."""
+    out = np.empty((n, dim))
+    for i in range(n):
+        for c in range(dim):
+            out[i, c] = rng.standard_normal()
+    b0 = 1.0 - alpha
+    a1 = -alpha
+    for c in range(dim):
+        z = 0.0
+        for i in range(n):
+            x = out[i, c]
+            y = z + b0 * x
+            z = x * 0.0 - y * a1
+            out[i, c] = y * gain
+    return out

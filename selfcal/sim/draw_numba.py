@@ -1,4 +1,4 @@
-"""An optional numba kernel of the simulator's normal draws: the same numbers, faster.
+"""Optional numba kernels of the simulator's random draws: the same numbers, faster.
 
 A 20-Hz stream draws 8 standard normals a sample and more (the sensor's white noise, the
 pressure channels' noise and sway, the reported temperature, the foot's sway), ~14 M a
@@ -6,18 +6,28 @@ device-day: a third of the samples-level simulator's time. numpy's
 ``Generator.standard_normal`` takes ~10 ns a number here; numba's implementation of the
 same method (numpy's ziggurat, on the same bit generator and its state) takes ~3 ns, and
 gives the same numbers from the same state, and leaves the generator in the same state.
-So a stream drawn with the kernel is the same bit for bit, and the draws after it are too.
 
-:func:`standard_normal` is ``rng.standard_normal(shape)``, by the kernel when it is
-loaded (:func:`load`; a stream of at least :data:`LOAD_FOR_DRAWS` normals loads it), else
-by numpy. The first load compares the kernel with numpy on several generators, shapes and
-interleavings (:func:`_same_as_numpy`) and refuses it, with a warning, if one number or the
-generator's state differs. Only PCG64 generators (what ``np.random.default_rng`` makes,
-and every stream of :class:`selfcal.sim.Simulation`) are given to it. numba is optional
-(``pip install 'selfcal[fast]'``); ``SELFCAL_NUMBA=0`` turns it off.
+The kernels (:mod:`selfcal.sim._draw_jit`) are those draws, and the low-pass noise of the
+foot's sway and the pressure channels (:func:`selfcal.sim.motion.lowpass_noise`: the draws
+and ``scipy.signal.lfilter``'s recurrence in one pass, 1.5 against 2.3 ms for an hour of 4
+channels). They do the numpy code's operations in the same order (no fastmath, and no
+function numpy computes with its own SIMD code: exp and log differ in the last bit here),
+so a stream drawn with them is the same bit for bit, and so are the draws after it. (The
+arithmetic of the read-out, the reported temperature and the pressure noise was tried as
+kernels too: 0.0-0.25 ms an hour of samples better than numpy's passes, not worth a kernel.)
+
+They are used once loaded (:func:`load`; a stream of at least :data:`LOAD_FOR_DRAWS`
+normals loads them). The first load compares each with the numpy code on several
+generators, shapes and values (:func:`_same_as_numpy`) and refuses them, with a warning,
+if one number or the generator's state differs. Only PCG64 generators (what
+``np.random.default_rng`` makes, and every stream of :class:`selfcal.sim.Simulation`) are
+given to them. numba is optional (``pip install 'selfcal[fast]'``); ``SELFCAL_NUMBA=0``
+turns them off.
 """
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -32,15 +42,19 @@ LOAD_FOR_DRAWS = 20_000_000
 _FEW = 1_000
 
 
-def _load():
+def _load() -> SimpleNamespace:
     from selfcal.sim import _draw_jit
 
-    return _draw_jit.fill_standard_normal
+    return SimpleNamespace(**{name: getattr(_draw_jit, name) for name in KERNELS})
 
 
-def kernel(draws: float | None = None):
-    """The kernel if it is loaded and usable here, else None. ``draws``: the normals about
-    to be drawn; at least :data:`LOAD_FOR_DRAWS` loads it (None never loads it)."""
+#: The kernels of :mod:`selfcal.sim._draw_jit`.
+KERNELS = ("fill_standard_normal", "lowpass")
+
+
+def kernel(draws: float | None = None) -> SimpleNamespace | None:
+    """The kernels if they are loaded and usable here, else None. ``draws``: the normals
+    about to be drawn; at least :data:`LOAD_FOR_DRAWS` loads them (None never loads them)."""
     from selfcal.detect_numba import enabled
 
     if not enabled():
@@ -50,8 +64,21 @@ def kernel(draws: float | None = None):
     return NORMALS.get()
 
 
+def for_draws(rng: np.random.Generator, size: int, accelerate=None) -> SimpleNamespace | None:
+    """The kernels to draw ``size`` numbers from ``rng`` with, or None for numpy's code.
+
+    ``accelerate``: None takes them if they are loaded (:func:`kernel`), for ``size`` of at
+    least :data:`_FEW` (a kernel call costs ~10 us); False never; or the kernels to use
+    (the check's way of giving them). A bit generator other than PCG64 always gets None."""
+    if accelerate is False or type(rng.bit_generator) is not np.random.PCG64:
+        return None
+    if accelerate is None:
+        return kernel() if size >= _FEW else None
+    return accelerate
+
+
 def load() -> bool:
-    """Load and check the kernel now; whether it is used."""
+    """Load and check the kernels now; whether they are used."""
     from selfcal.detect_numba import enabled
 
     return enabled() and NORMALS.get() is not None
@@ -59,42 +86,45 @@ def load() -> bool:
 
 def standard_normal(rng: np.random.Generator, shape, accelerate=None) -> np.ndarray:
     """``rng.standard_normal(shape)``: float64 standard normals of ``shape`` (int or tuple),
-    the same numbers and the same generator state after, by the kernel when it is loaded.
-
-    ``accelerate``: None takes the kernel if it is loaded (:func:`kernel`); False, numpy;
-    or the kernel itself."""
-    if accelerate is None:
-        accelerate = kernel()
+    the same numbers and the same generator state after, by the kernel when it is loaded
+    (``accelerate``: see :func:`for_draws`)."""
     out_shape = (shape,) if np.ndim(shape) == 0 else tuple(shape)
-    size = int(np.prod(out_shape, dtype=np.int64))
-    if (accelerate is None or accelerate is False or size < _FEW
-            or type(rng.bit_generator) is not np.random.PCG64):
+    found = for_draws(rng, int(np.prod(out_shape, dtype=np.int64)), accelerate)
+    if found is None:
         return rng.standard_normal(out_shape)
     out = np.empty(out_shape)
-    accelerate(rng, out)
+    found.fill_standard_normal(rng, out)
     return out
 
 
-def _same_as_numpy(fill) -> bool:
-    """Whether the kernel draws numpy's numbers and leaves the generator in numpy's state:
-    three generators (one spawned as the simulator's streams are), shapes of 1 to 300 000
-    values (the ziggurat's rare tail steps among them), kernel and numpy draws interleaved."""
-    shapes = [(1,), (7,), (4, 3), (100_000, 4), (33, 1), (0, 4), (300_000,)]
-    for seed in (0, 2026, np.random.SeedSequence(7).spawn(3)[2]):
-        ours, theirs = np.random.default_rng(seed), np.random.default_rng(seed)
-        for i, shape in enumerate(shapes):
-            want = theirs.standard_normal(shape)
-            got = np.empty(shape)
-            fill(ours, got)
-            if not same_bits(got, want):
+def _same_as_numpy(k: SimpleNamespace) -> bool:
+    """Whether the kernels give the numpy code's values bit for bit and leave the generator
+    in its state: the normals from three generators (one spawned as the simulator's streams
+    are), 1 to 300 000 of them (the ziggurat's rare tail steps among them), numpy's own
+    draws between the kernel's; the low-pass noise of 3 and 4 columns, short and long,
+    filtered and not."""
+    from selfcal.sim.motion import lowpass_noise
+
+    def same_twice(draw) -> bool:
+        """``draw(rng, accelerate)`` by numpy and by the kernels from twin generators."""
+        for seed in (0, 2026, np.random.SeedSequence(7).spawn(3)[2]):
+            theirs, ours = np.random.default_rng(seed), np.random.default_rng(seed)
+            with np.errstate(all="ignore"):
+                want, got = draw(theirs, False), draw(ours, k)
+            if not (same_bits(got, want) and same_bits(ours.random(3), theirs.random(3))):
                 return False
-            if i % 2:  # numpy's own draws between the kernel's: the same stream on
-                if not same_bits(ours.random(5), theirs.random(5)):
-                    return False
-        if ours.bit_generator.state != theirs.bit_generator.state:
+            if ours.bit_generator.state != theirs.bit_generator.state:
+                return False
+        return True
+
+    for shape in ((1,), (7,), (4, 3), (100_000, 4), (33, 1), (0, 4), (300_000,)):
+        if not same_twice(lambda rng, acc: standard_normal(rng, shape, acc)):
+            return False
+    for n, dim, corner_hz in ((1, 4, 0.3), (5, 3, 2.0), (20_000, 4, 0.3), (20_000, 3, 1.5), (50, 3, 1e6)):
+        if not same_twice(lambda rng, acc: lowpass_noise(rng, n, 20.0, corner_hz, dim, accelerate=acc)):
             return False
     return True
 
 
-#: The kernel, loaded and checked once per process.
-NORMALS = CheckedKernel("the simulator's numba normal draws", _load, _same_as_numpy)
+#: The kernels, loaded and checked once per process.
+NORMALS = CheckedKernel("the simulator's numba draws", _load, _same_as_numpy)

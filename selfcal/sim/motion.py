@@ -32,6 +32,7 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 from scipy.signal import lfilter
 
+from selfcal.sim import draw_numba
 from selfcal.sim.config import GaitConfig
 from selfcal.sim.draw_numba import standard_normal
 
@@ -81,15 +82,22 @@ def world_to_foot(f_world: np.ndarray, pitch_rad: np.ndarray, roll_rad: np.ndarr
     return np.column_stack([gx, cr * fy + sr * gz, -sr * fy + cr * gz])
 
 
-def lowpass_noise(rng: np.random.Generator, n: int, rate_hz: float, corner_hz: float, dim: int = 3) -> np.ndarray:
+def lowpass_noise(rng: np.random.Generator, n: int, rate_hz: float, corner_hz: float, dim: int = 3,
+                  accelerate=None) -> np.ndarray:
     """Unit-variance first-order low-pass Gaussian noise.
+
+    ``accelerate``: the draws' numba kernels (:func:`selfcal.sim.draw_numba.for_draws`:
+    None takes them once loaded, False never); the same values either way.
 
     Returns
     -------
     ndarray, shape (n, dim), unit sd
     """
     alpha = float(np.exp(-2 * np.pi * corner_hz / rate_hz))
-    w = standard_normal(rng, (n, dim))
+    found = draw_numba.for_draws(rng, n * dim, accelerate)
+    if alpha > 1e-6 and found is not None:
+        return found.lowpass(rng, n, dim, alpha, float(np.sqrt((1 + alpha) / (1 - alpha))))
+    w = standard_normal(rng, (n, dim), found if found is not None else False)
     if alpha <= 1e-6:
         return w
     y = lfilter([1 - alpha], [1, -alpha], w, axis=0)
