@@ -356,7 +356,9 @@ class Simulation:
         t_start = w0 / rate
         dur = (w1 - w0) / rate
         t_mid = t_start + 0.5 * dur
-        a_true = gravity_foot(s.pitch0[seg0], s.roll0[seg0])
+        # a period's windows share its orientation: gravity once a period (elementwise, the
+        # same values), gathered to its windows (a year: 3.2 M windows, ~0.1 M periods)
+        a_true = gravity_foot(s.pitch0[st_seg], s.roll0[st_seg])[period]
         truth = self.truth.sensor
         # samples received
         spp = cfg.ble.samples_per_packet
@@ -381,7 +383,9 @@ class Simulation:
             mean_clean = sensor_mean(truth, a_true[b], temp_true[b], t_mid[b])
             sw2 = sway[b] ** 2
             root_n = np.sqrt(n_recv[b])
-            var_mean[b] = (noise_var[None, :] + (sw2 * corr)[:, None]) / n_recv[b, None]
+            sway_var = sw2 * corr
+            for c in range(3):  # by column: an (n, 3) broadcast runs an inner loop of 3 a row
+                np.divide(noise_var[c] + sway_var, n_recv[b], out=var_mean[b, c])
             mean_g[b] *= np.sqrt(var_mean[b])
             mean_g[b] += mean_clean
             sd_true = np.sqrt(noise_var[None, :] + sw2[:, None])
