@@ -22,7 +22,7 @@ Then, unless ``--no-stages``, where a samples-level device-day goes (one device,
 process, the same seed): the simulator alone (the 20 Hz stream of every channel), the
 detector alone on that stream, and the random draws the stream cannot do without (three
 accelerometer axes, four pressure channels and the temperature: 8 standard normals a
-sample), each as device-days/s; and, for the poses level, the simulator's schedule and
+sample, by numpy's Generator and by the simulator's numba draws, the same numbers), each as device-days/s; and, for the poses level, the simulator's schedule and
 still windows alone. A stage slower than the goal bounds the whole replay below it.
 
     python bench/replay_throughput.py                        # 4 devices x 10 days, both levels
@@ -148,14 +148,15 @@ def print_breakdown(breakdown: dict[str, tuple], device_days: float) -> None:
 
 
 def warm_up() -> None:
-    """Load (or compile into numba's cache) the simulator planner's, the detector's, the
-    error models' and the sums' kernels in this process, as a long run has them after its
-    first seconds."""
+    """Load (or compile into numba's cache) the simulator planner's and draws', the
+    detector's, the error models' and the sums' kernels in this process, as a long run has
+    them after its first seconds."""
     from selfcal import model_numba, sums_numba
     from selfcal.detect_numba import kernels_now
-    from selfcal.sim import plan_numba
+    from selfcal.sim import draw_numba, plan_numba
 
     plan_numba.kernels()
+    draw_numba.load()
     kernels_now()
     model_numba.load()
     sums_numba.load()
@@ -195,9 +196,9 @@ def print_long(cfg: dict, days: float, refit_every_days: float, seed: int, effec
 
 _STARTUP = (
     "import time; t0 = time.perf_counter(); import selfcal.replay; "
-    "from selfcal.sim import plan_numba; from selfcal.detect_numba import kernels_now; "
-    "from selfcal import model_numba, sums_numba; plan_numba.kernels(); kernels_now(); model_numba.load(); "
-    "sums_numba.load(); "
+    "from selfcal.sim import draw_numba, plan_numba; from selfcal.detect_numba import kernels_now; "
+    "from selfcal import model_numba, sums_numba; plan_numba.kernels(); draw_numba.load(); kernels_now(); "
+    "model_numba.load(); sums_numba.load(); "
     "print(time.perf_counter() - t0)"
 )
 
@@ -233,6 +234,7 @@ def print_stages(cfg: dict, days: float, seed: int) -> None:
     """Device-days/s of each stage of one device's replay, alone, on this process."""
     from selfcal.config import section
     from selfcal.detect import StaticDetector
+    from selfcal.sim import draw_numba
     from selfcal.sim.config import SimConfig
     from selfcal.sim.simulator import Simulation
 
@@ -251,11 +253,12 @@ def print_stages(cfg: dict, days: float, seed: int) -> None:
     found = sum(len(det.feed(c.t_s, c.acc_g, temp_c=c.temp_c, pressure_kpa=c.pressure_kpa).t_start_s)
                 for c in chunks)
     rows.append((f"samples level: the detector on that stream, 1 h chunks ({found} windows)", time.perf_counter() - t0, n))
-    rng = np.random.default_rng(seed)
-    t0 = time.perf_counter()
-    for c in chunks:
-        rng.standard_normal((len(c.t_s), 8))
-    rows.append(("samples level: 8 standard normals a sample, nothing else", time.perf_counter() - t0, n))
+    for label, accelerate in (("numpy's Generator", False), ("the simulator's draws (numba's, once loaded)", None)):
+        rng = np.random.default_rng(seed)
+        t0 = time.perf_counter()
+        for c in chunks:
+            draw_numba.standard_normal(rng, (len(c.t_s), 8), accelerate)
+        rows.append((f"samples level: 8 standard normals a sample, nothing else: {label}", time.perf_counter() - t0, n))
     print(f"\nwhere the time goes, one device x {days:g} days (seed {seed}), one process:\n")
     print("| stage | s | device-days/s | M samples/s |")
     print("|---|---:|---:|---:|")

@@ -587,7 +587,7 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
         # loaded once here, the simulator planner's kernels (and at the samples level the
-        # detector's) come to every forked process; otherwise each loads and checks them,
+        # detector's and the stream draws') come to every forked process; otherwise each loads and checks them,
         # or all compile them into an empty numba cache at once
         plan_numba.kernels(float(kwargs.get("days", 30.0)) * devices / workers)
         if float(kwargs.get("days", 30.0)) * devices / workers >= plan_numba.LOAD_FOR_DAYS:
@@ -595,8 +595,10 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
             sums_numba.load()
         if kwargs.get("level") == "samples":
             from selfcal.detect_numba import kernels_now
+            from selfcal.sim import draw_numba
 
             kernels_now()
+            draw_numba.load()  # the stream's draws
         with ProcessPoolExecutor(max_workers=workers) as pool:
             futs = {pool.submit(_replay_one, job): i for i, job in enumerate(jobs)}
             try:

@@ -306,8 +306,12 @@ class Simulation:
         press = pressure_by_channel(np.repeat(s.load[a:b].T, counts, axis=1), phase, moving, s.stand_kpa,
                                     cfg.pressure, rngs["pressure"], rate).T
         keep = _radio_keep(index, cfg.ble.samples_per_packet, cfg.ble.packet_loss_rate, rngs["radio"], carry)
-        # the same rows as x[keep], faster on (n, k), and C-contiguous (f and press are views by axis)
-        rows = lambda x: np.ascontiguousarray(np.compress(keep, x, axis=0))  # noqa: E731
+        # the rows x[keep], C-contiguous: np.compress on a C array (0.19 against 0.65 ms an
+        # hour of 3 axes), a boolean index on f and press, views by axis of (k, n) arrays
+        # (0.65 against 1.7-2.2 ms: compress walks their rows with a stride of n)
+        def rows(x: np.ndarray) -> np.ndarray:
+            return np.compress(keep, x, axis=0) if x.flags.c_contiguous else np.ascontiguousarray(x[keep])
+
         return SampleChunk(
             t_s=t_s[keep], acc_g=rows(raw), temp_c=temp_rep[keep], pressure_kpa=rows(press),
             a_true_g=rows(f), temp_true_c=temp_true[keep], activity=np.repeat(s.activity[a:b], counts)[keep],
