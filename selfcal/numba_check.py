@@ -27,12 +27,17 @@ class CheckedKernel:
         Imports the kernel module and returns the kernel (ImportError without numba).
     same : callable (kernel) -> bool
         Whether the kernel gives the numpy code's results bit for bit.
+    reference, fallback : str
+        For the warnings: the code it is checked against, and what runs instead.
     """
 
-    def __init__(self, label: str, load: Callable[[], Any], same: Callable[[Any], bool]):
+    def __init__(self, label: str, load: Callable[[], Any], same: Callable[[Any], bool],
+                 reference: str = "the numpy code", fallback: str = "running the numpy code"):
         self.label = label
         self._load = load
         self._same = same
+        self.reference = reference
+        self.fallback = fallback
         self._lock = threading.Lock()
         self._found: list = []  # [kernel or None] once loaded and checked
 
@@ -65,12 +70,12 @@ class CheckedKernel:
         except ImportError:  # no numba
             return None
         except Exception as exc:  # noqa: BLE001 - a compiler error, no cache location: never stop the caller
-            warnings.warn(f"selfcal: {self.label} is not used ({exc!r}); running the numpy code",
+            warnings.warn(f"selfcal: {self.label} is not used ({exc!r}); {self.fallback}",
                           RuntimeWarning, stacklevel=2)
             return None
         if not ok:
-            warnings.warn(f"selfcal: {self.label} gave other results than the numpy code on this machine; "
-                          "running the numpy code", RuntimeWarning, stacklevel=2)
+            warnings.warn(f"selfcal: {self.label} gave other results than {self.reference} on this machine; "
+                          f"{self.fallback}", RuntimeWarning, stacklevel=2)
             return None
         return kern
 

@@ -15,9 +15,9 @@ kernels off as it does the detector's (:mod:`selfcal.detect_numba`).
 
 from __future__ import annotations
 
-import threading
-import warnings
 from types import SimpleNamespace
+
+from selfcal.numba_check import CheckedKernel, same_bits
 
 #: A plan shorter than this (days) is made in Python unless the kernels are loaded
 #: already: their first load in a process (0.3-0.7 s from numba's cache, longer to
@@ -53,52 +53,17 @@ def kernels(days: float | None = None) -> SimpleNamespace | None:
         return None
     if days is not None and days < LOAD_FOR_DAYS and not loaded():
         return None
-    return _checked()
-
-
-_lock = threading.Lock()
-_found: list = []  # [kernels or None] once loaded and checked
+    return PLANNER.get()
 
 
 def loaded() -> bool:
     """Whether the kernels were loaded and checked (or found unusable) in this process."""
-    return bool(_found)
+    return PLANNER.loaded()
 
 
 def reset() -> None:
     """Forget the loaded kernels (tests)."""
-    with _lock:
-        _found.clear()
-
-
-def _checked() -> SimpleNamespace | None:
-    """The kernels, loaded and checked once per process (a thread that waited for another's
-    check takes its result)."""
-    if not _found:
-        with _lock:
-            if not _found:
-                _found.append(_load_and_check())
-    return _found[0]
-
-
-def _load_and_check() -> SimpleNamespace | None:
-    """The kernels if numba loads them (or compiles them) and they pass the check, else None."""
-    try:
-        found = _load()
-        ok = found is not None and _same_plan(found)
-    except ImportError:  # no numba
-        return None
-    except Exception as exc:  # noqa: BLE001 - a compiler error, no cache location: never stop the simulator
-        warnings.warn(f"selfcal: the simulator planner's numba kernels are not used ({exc!r}); "
-                      "planning in Python", RuntimeWarning, stacklevel=3)
-        return None
-    if found is None:
-        return None
-    if not ok:
-        warnings.warn("selfcal: the simulator planner's numba kernels differ from its Python code "
-                      "on this machine; planning in Python", RuntimeWarning, stacklevel=3)
-        return None
-    return found
+    PLANNER.reset()
 
 
 def _load() -> SimpleNamespace | None:
@@ -115,13 +80,6 @@ def _load() -> SimpleNamespace | None:
         raise RuntimeError(f"the kernel writes {_plan_jit.N_COLUMNS} columns, the schedule has "
                            f"{len(wearer._COLUMNS)}")
     return SimpleNamespace(worn=_plan_jit.worn, start_states=_plan_jit.start_states)
-
-
-def _same_bits(a, b) -> bool:
-    import numpy as np
-
-    return (a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
-            and np.array_equal(np.signbit(a), np.signbit(b)))
 
 
 def _same_plan(k: SimpleNamespace) -> bool:
@@ -143,7 +101,7 @@ def _same_plan(k: SimpleNamespace) -> bool:
             python.worn_python(14 * 3600.0)
             compiled.worn_compiled(k.worn, 14 * 3600.0)
         table = python.table()
-        if not (_same_bits(table, compiled.table()) and python.t == compiled.t
+        if not (same_bits(table, compiled.table()) and python.t == compiled.t
                 and python.orient == compiled.orient and python.load == compiled.load
                 and python.next_still == compiled.next_still
                 and python.rng.bit_generator.state == compiled.rng.bit_generator.state):
@@ -152,7 +110,13 @@ def _same_plan(k: SimpleNamespace) -> bool:
         m = len(table)
         args = (rng.uniform(10, 5000, m), rng.uniform(15, 35, m), np.where(rng.random(m) < 0.3, 4.0, 0.0),
                 rng.uniform(300, 3000, m), np.full(m, 120.0), rng.random(m) < 0.6, 21.5)
-        if not all(_same_bits(x, y) for x, y in zip(temperature.start_states_python(*args),
+        if not all(same_bits(x, y) for x, y in zip(temperature.start_states_python(*args),
                                                     temperature.segment_start_states(*args, kernel=k))):
             return False
     return True
+
+
+#: The kernels, loaded and checked once per process (``_load`` is looked up at the load,
+#: so that tests can give another).
+PLANNER = CheckedKernel("the simulator planner's numba kernels", lambda: _load(), lambda k: _same_plan(k),
+                        reference="the Python planner", fallback="planning in Python")
