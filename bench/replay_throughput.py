@@ -22,8 +22,9 @@ Then, unless ``--no-stages``, where a samples-level device-day goes (one device,
 process, the same seed): the simulator alone (the 20 Hz stream of every channel), the
 detector alone on that stream, and the random draws the stream cannot do without (three
 accelerometer axes, four pressure channels and the temperature: 8 standard normals a
-sample, by numpy's Generator and by the simulator's numba draws, the same numbers), each as device-days/s; and, for the poses level, the simulator's schedule and
-still windows alone. A stage slower than the goal bounds the whole replay below it.
+sample, by numpy's Generator and by the simulator's numba draws, the same numbers), each
+as device-days/s; and, for the poses level, the simulator's schedule and still windows
+alone. A stage slower than the goal bounds the whole replay below it.
 
     python bench/replay_throughput.py                        # 4 devices x 10 days, both levels
     python bench/replay_throughput.py --days 365 --devices 8 --levels poses --engines processes:2

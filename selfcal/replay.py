@@ -587,8 +587,8 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
         # loaded once here, the simulator planner's kernels (and at the samples level the
-        # detector's and the stream draws') come to every forked process; otherwise each loads and checks them,
-        # or all compile them into an empty numba cache at once
+        # detector's and the stream's draws') come to every forked process; otherwise each
+        # loads and checks them, or all compile them into an empty numba cache at once
         plan_numba.kernels(float(kwargs.get("days", 30.0)) * devices / workers)
         if float(kwargs.get("days", 30.0)) * devices / workers >= plan_numba.LOAD_FOR_DAYS:
             model_numba.load()  # the fits' and the store's kernels, likewise

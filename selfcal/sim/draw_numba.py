@@ -33,8 +33,8 @@ import numpy as np
 
 from selfcal.numba_check import CheckedKernel, same_bits
 
-#: Normals a simulation is about to draw from which it loads the kernel (:func:`kernel`):
-#: its first load in a process (~0.1-0.5 s from numba's cache once numba is imported)
+#: Normals a simulation is about to draw from which it loads the kernels (:func:`kernels`):
+#: their first load in a process (~0.1-0.5 s from numba's cache once numba is imported)
 #: costs what numpy's draws lose over ~2 x 10^7 normals, about a day and a half of a 20-Hz stream.
 LOAD_FOR_DRAWS = 20_000_000
 
@@ -52,28 +52,28 @@ def _load() -> SimpleNamespace:
 KERNELS = ("fill_standard_normal", "lowpass")
 
 
-def kernel(draws: float | None = None) -> SimpleNamespace | None:
+def kernels(draws: float | None = None) -> SimpleNamespace | None:
     """The kernels if they are loaded and usable here, else None. ``draws``: the normals
     about to be drawn; at least :data:`LOAD_FOR_DRAWS` loads them (None never loads them)."""
     from selfcal.detect_numba import enabled
 
     if not enabled():
         return None
-    if not NORMALS.loaded() and (draws is None or draws < LOAD_FOR_DRAWS):
+    if not DRAWS.loaded() and (draws is None or draws < LOAD_FOR_DRAWS):
         return None
-    return NORMALS.get()
+    return DRAWS.get()
 
 
 def for_draws(rng: np.random.Generator, size: int, accelerate=None) -> SimpleNamespace | None:
     """The kernels to draw ``size`` numbers from ``rng`` with, or None for numpy's code.
 
-    ``accelerate``: None takes them if they are loaded (:func:`kernel`), for ``size`` of at
+    ``accelerate``: None takes them if they are loaded (:func:`kernels`), for ``size`` of at
     least :data:`_FEW` (a kernel call costs ~10 us); False never; or the kernels to use
     (the check's way of giving them). A bit generator other than PCG64 always gets None."""
     if accelerate is False or type(rng.bit_generator) is not np.random.PCG64:
         return None
     if accelerate is None:
-        return kernel() if size >= _FEW else None
+        return kernels() if size >= _FEW else None
     return accelerate
 
 
@@ -81,7 +81,7 @@ def load() -> bool:
     """Load and check the kernels now; whether they are used."""
     from selfcal.detect_numba import enabled
 
-    return enabled() and NORMALS.get() is not None
+    return enabled() and DRAWS.get() is not None
 
 
 def standard_normal(rng: np.random.Generator, shape, accelerate=None) -> np.ndarray:
@@ -127,4 +127,4 @@ def _same_as_numpy(k: SimpleNamespace) -> bool:
 
 
 #: The kernels, loaded and checked once per process.
-NORMALS = CheckedKernel("the simulator's numba draws", _load, _same_as_numpy)
+DRAWS = CheckedKernel("the simulator's numba draws", _load, _same_as_numpy)

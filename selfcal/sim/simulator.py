@@ -248,7 +248,7 @@ class Simulation:
         rngs = {k: self._rng(k) for k in ("motion", "noise", "radio", "pressure", "temperature")}
         bounds = self.chunk_bounds(chunk_s)
         # a long stream loads the normal draws' kernel (the same numbers): 8 and more a sample
-        draw_numba.kernel(draws=NORMALS_PER_SAMPLE * float(self.schedule.n.sum()))
+        draw_numba.kernels(draws=NORMALS_PER_SAMPLE * float(self.schedule.n.sum()))
         it = bounds
         if progress:
             from tqdm import tqdm
@@ -340,7 +340,7 @@ class Simulation:
         """
         s, cfg, rate = self.schedule, self.config, self.rate_hz
         rng = self._rng("poses")
-        draw_numba.kernel(draws=8.0 * len(s.n))  # ~8 normals a window, less than one window a segment
+        draw_numba.kernels(draws=8.0 * len(s.n))  # ~8 normals a window, less than one window a segment
         st_start, st_n, st_seg = s.still_periods()
         trim = int(round(cfg.pose_trim_s * rate))
         st_start, st_n = st_start + trim, st_n - 2 * trim
