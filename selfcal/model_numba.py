@@ -59,13 +59,7 @@ def kernel(n_rows: int = 0):
     """The kernel ``residual_jac`` of :mod:`selfcal._model_jit`, or None: numba missing,
     switched off by ``SELFCAL_NUMBA``, not numpy's results here, or not loaded yet and
     ``n_rows`` below :data:`LOAD_FOR_ROWS`."""
-    from selfcal.detect_numba import enabled
-
-    if not enabled():
-        return None
-    if not RESIDUAL_JAC.loaded() and n_rows < LOAD_FOR_ROWS:
-        return None
-    return RESIDUAL_JAC.get()
+    return RESIDUAL_JAC.available(load=n_rows >= LOAD_FOR_ROWS)
 
 
 def whitening_kernel(n_rows: int = 0):

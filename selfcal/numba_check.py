@@ -49,6 +49,16 @@ class CheckedKernel:
                     self._found.append(self.load_and_check())
         return self._found[0]
 
+    def available(self, load: bool = False):
+        """The kernel if ``SELFCAL_NUMBA`` allows kernels and it is loaded and usable, else
+        None; ``load``: load and check it now if it is not yet (a caller whose work pays
+        for the first load), else an unloaded kernel gives None."""
+        from selfcal.detect_numba import enabled
+
+        if not enabled() or not (load or self.loaded()):
+            return None
+        return self.get()
+
     def loaded(self) -> bool:
         """Whether it was loaded and checked (or found unusable) in this process."""
         return bool(self._found)

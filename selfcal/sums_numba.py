@@ -33,18 +33,12 @@ def _load() -> SimpleNamespace:
 def kernels() -> SimpleNamespace | None:
     """``running_sums`` and ``sum_by_group`` if they are loaded and usable here, else None
     (this never loads them)."""
-    from selfcal.detect_numba import enabled
-
-    if not enabled() or not SUMS.loaded():
-        return None
-    return SUMS.get()
+    return SUMS.available()
 
 
 def load() -> bool:
     """Load and check the kernels now (a process about to add many windows); whether they are used."""
-    from selfcal.detect_numba import enabled
-
-    return enabled() and SUMS.get() is not None
+    return SUMS.available(load=True) is not None
 
 
 def _same_as_numpy(k: SimpleNamespace) -> bool:

@@ -55,13 +55,7 @@ KERNELS = ("fill_standard_normal", "lowpass")
 def kernels(draws: float | None = None) -> SimpleNamespace | None:
     """The kernels if they are loaded and usable here, else None. ``draws``: the normals
     about to be drawn; at least :data:`LOAD_FOR_DRAWS` loads them (None never loads them)."""
-    from selfcal.detect_numba import enabled
-
-    if not enabled():
-        return None
-    if not DRAWS.loaded() and (draws is None or draws < LOAD_FOR_DRAWS):
-        return None
-    return DRAWS.get()
+    return DRAWS.available(load=draws is not None and draws >= LOAD_FOR_DRAWS)
 
 
 def for_draws(rng: np.random.Generator, size: int, accelerate=None) -> SimpleNamespace | None:
@@ -79,9 +73,7 @@ def for_draws(rng: np.random.Generator, size: int, accelerate=None) -> SimpleNam
 
 def load() -> bool:
     """Load and check the kernels now; whether they are used."""
-    from selfcal.detect_numba import enabled
-
-    return enabled() and DRAWS.get() is not None
+    return DRAWS.available(load=True) is not None
 
 
 def standard_normal(rng: np.random.Generator, shape, accelerate=None) -> np.ndarray:

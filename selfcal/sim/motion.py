@@ -94,14 +94,15 @@ def lowpass_noise(rng: np.random.Generator, n: int, rate_hz: float, corner_hz: f
     ndarray, shape (n, dim), unit sd
     """
     alpha = float(np.exp(-2 * np.pi * corner_hz / rate_hz))
+    gain = float(np.sqrt((1 + alpha) / (1 - alpha)))  # unit variance after the filter
     found = draw_numba.for_draws(rng, n * dim, accelerate)
     if alpha > 1e-6 and found is not None:
-        return found.lowpass(rng, n, dim, alpha, float(np.sqrt((1 + alpha) / (1 - alpha))))
-    w = standard_normal(rng, (n, dim), found if found is not None else False)
+        return found.lowpass(rng, n, dim, alpha, gain)
+    w = standard_normal(rng, (n, dim), found or False)
     if alpha <= 1e-6:
         return w
     y = lfilter([1 - alpha], [1, -alpha], w, axis=0)
-    y *= np.sqrt((1 + alpha) / (1 - alpha))
+    y *= gain
     return y
 
 

@@ -47,13 +47,7 @@ def kernels(days: float | None = None) -> SimpleNamespace | None:
     ``days``: the length of the plan about to be made; shorter than :data:`LOAD_FOR_DAYS`,
     it gets the kernels only if they are loaded already (None: load them regardless).
     """
-    from selfcal.detect_numba import enabled
-
-    if not enabled():
-        return None
-    if days is not None and days < LOAD_FOR_DAYS and not loaded():
-        return None
-    return PLANNER.get()
+    return PLANNER.available(load=days is None or days >= LOAD_FOR_DAYS)
 
 
 def loaded() -> bool:

@@ -340,7 +340,6 @@ class Simulation:
         """
         s, cfg, rate = self.schedule, self.config, self.rate_hz
         rng = self._rng("poses")
-        draw_numba.kernels(draws=8.0 * len(s.n))  # ~8 normals a window, less than one window a segment
         st_start, st_n, st_seg = s.still_periods()
         trim = int(round(cfg.pose_trim_s * rate))
         st_start, st_n = st_start + trim, st_n - 2 * trim
@@ -371,7 +370,9 @@ class Simulation:
         n_recv = np.minimum(np.maximum(n_recv, 1), w1 - w0)
         dof = np.maximum(n_recv - 1, 1)
         # the draws, whole and in this order (the stream's numbers); the arithmetic on them
-        # is done in place, by blocks of windows (:attr:`POSE_BLOCK`)
+        # is done in place, by blocks of windows (:attr:`POSE_BLOCK`). 8 normals a window
+        # (mean, temperature, pressure): a year's 3.2 M windows load the draws' kernels
+        draw_numba.kernels(draws=8.0 * m)
         mean_g = standard_normal(rng, (m, 3))
         sd_g = rng.chisquare(np.broadcast_to(dof[:, None].astype(float), (m, 3)))
         temp_rep = standard_normal(rng, m)
