@@ -74,6 +74,7 @@ from selfcal.selection import (
     rounded,
     stops_paying,
     supports,
+    wald_far_below,
     wald_not_significant_to_keep,
     wald_significant,
 )
@@ -615,12 +616,13 @@ class OnlineCalibrator:
                 if e in self.model.effects or not self.model.takes(e):
                     continue
                 large = self._candidate(e)
-                mask, data, cfg, cv_small, _ = cells(large.uses_temperature)
+                mask, data, cfg, cv_small, small_fit = cells(large.uses_temperature)
                 if mask.sum() < c.min_cells or selection_applicable(e, data, c):
                     continue
                 comp = compare(self.model, large, data, folds_all[mask], prior_small=self.prior(),
                                prior_large=self._prior_of(large), theta_small=theta, fit_cfg=cfg, clip_g=clip,
-                               cv_small=cv_small, clusters=clusters_all[mask], cv_only_if=wald_significant(c))
+                               cv_small=cv_small, clusters=clusters_all[mask], cv_only_if=wald_significant(c),
+                               small_fit=small_fit, screen_if=wald_far_below(c))
                 results.append(("add", comp))
                 if supports(comp, c):
                     supported.append(comp)
@@ -713,7 +715,8 @@ class OnlineCalibrator:
         level = c.model_copy(update={"alpha": c.alpha / len(times)})
         comp = compare(self.model, large, data, folds_all[mask], prior_small=self.prior(),
                        prior_large=self._prior_of(large), theta_small=theta, fit_cfg=cfg, clip_g=clip,
-                       cv_small=cv_small, clusters=clusters_all[mask], cv_only_if=wald_significant(level))
+                       cv_small=cv_small, clusters=clusters_all[mask], cv_only_if=wald_significant(level),
+                       small_fit=small, screen_if=wald_far_below(level))
         results.append(("step", comp))
         if not supports(comp, level):
             return None

@@ -12,7 +12,12 @@ both hold:
   checks, so this is a calibrated test; ``alpha`` is small because the question is
   asked again every day for every candidate (30 days × 4 candidates is 120 tests, and
   false switches must stay rare per device). This cheap test comes first: most checks
-  of an effect-free device end here.
+  of an effect-free device end here. Cheaper still, and before it: one Gauss-Newton step
+  of the extended model from the current estimate (the effect at 0) gives the effect
+  terms' chi2 of a score test (:func:`one_step_chi2`). Its covariance is the linear one,
+  never inflated, so it is the larger of the two wherever the step lands where the fit
+  does; a candidate whose one-step chi2 is below ``screen_ratio`` of the threshold is not
+  fitted at all (``Comparison.screened``).
 * **Held-out gain.** A k-fold cross-validation over the store's cells (the guard's
   folds: a hash of the cell key). Every cell is held out once; the base and the extended
   model are fitted without its fold and score it. The paired per-cell differences of
@@ -38,7 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.special import chdtri
 
 from selfcal.errors import InputError
-from selfcal.fit import FitConfig, FitResult, PoseData, Prior, fit_poses
+from selfcal.fit import FitConfig, FitResult, NoiseModel, PoseData, Prior, fit_poses
 from selfcal.models import EFFECT_PARAMS, ErrorModel
 
 
@@ -73,6 +78,9 @@ class SelectionConfig(BaseModel):
     step_times: int = Field(9, ge=1, description="bias step: candidate times scanned (the Wald level is alpha / this)")
     step_min_side: float = Field(
         0.15, gt=0, lt=0.5, description="bias step: the outer candidate times leave this fraction of the cells outside")
+    screen_ratio: float = Field(
+        0.25, ge=0, lt=1, description="a candidate whose one-step (score) chi2 is below this fraction of its Wald "
+                                      "threshold is not fitted: it is not supported (0: fit every candidate)")
 
     @classmethod
     def from_section(cls, section_: dict | None) -> "SelectionConfig":
@@ -99,6 +107,7 @@ class Comparison:
     wald_dof: int
     large_fit: FitResult | None = None
     notes: list[str] = field(default_factory=list)
+    screened: bool = False    # wald_chi2 is the one-step chi2 (:func:`one_step_chi2`): the large model was not fitted
 
     @property
     def gain_rel(self) -> float:
@@ -113,7 +122,7 @@ class Comparison:
                 "heldout_rms_mg_before": rounded(self.heldout_rms_small_mg, 4),
                 "heldout_rms_mg_after": rounded(self.heldout_rms_large_mg, 4),
                 "heldout_gain_rel": rounded(self.gain_rel, 4), "n_heldout_cells": self.n_heldout,
-                "wald_chi2": round(self.wald_chi2, 3), "wald_dof": self.wald_dof}
+                "wald_chi2": round(self.wald_chi2, 3), "wald_dof": self.wald_dof, "screened": self.screened}
 
 
 def rounded(x: float, nd: int) -> float | None:
@@ -156,7 +165,8 @@ def _clipped(model: ErrorModel, theta: np.ndarray, data: PoseData, clip_g: float
 def compare(small: ErrorModel, large: ErrorModel, data: PoseData, folds: np.ndarray, *,
             prior_small: Prior, prior_large: Prior, theta_small: np.ndarray, fit_cfg: FitConfig,
             clip_g: float, cv_small: dict[int, np.ndarray] | None = None,
-            clusters: np.ndarray | None = None, cv_only_if=None) -> Comparison:
+            clusters: np.ndarray | None = None, cv_only_if=None, small_fit: FitResult | None = None,
+            screen_if=None) -> Comparison:
     """Test ``large`` (``small`` plus one effect) against ``small`` on the cells ``data``.
 
     ``folds`` (n,) int: the held-out fold of each cell. ``clusters`` (n,): the direction
@@ -164,11 +174,22 @@ def compare(small: ErrorModel, large: ErrorModel, data: PoseData, folds: np.ndar
     held-out clipped residuals per fold (g), shared by candidates on the same cells
     (filled in when given empty). ``cv_only_if(wald_chi2, dof) -> bool``: run the
     cross-validation only when this says the Wald test leaves the question open.
+    ``small_fit`` (the small model's robust fit on ``data``) and ``screen_if(chi2, dof) ->
+    bool``: when both are given and ``screen_if`` holds for :func:`one_step_chi2`, the
+    large model is not fitted (``screened``, ``large_fit`` None, ``wald_chi2`` the
+    one-step chi2).
     Returns a :class:`Comparison` with the large model's full fit; its held-out fields
     are NaN when the cross-validation was skipped.
     """
     effect = next(e for e in large.effects if e not in small.effects)
     theta_large0 = large.extend_theta(theta_small, small)
+    if small_fit is not None and screen_if is not None:
+        chi2 = one_step_chi2(small_fit, large, data, prior_large=prior_large, theta_large0=theta_large0,
+                             fit_cfg=fit_cfg)
+        dof = large.index(effect).stop - large.index(effect).start
+        if screen_if(chi2, dof):
+            return Comparison(effect, small.name, large.name, np.nan, np.nan, np.nan, 0, chi2, dof, None,
+                              ["not fitted: the one-step chi2 is far below the threshold"], screened=True)
     # the large model on every cell first: its effect terms against their covariance
     full = fit_poses(large, data, prior=prior_large, theta0_u=theta_large0, cfg=fit_cfg, robust=True,
                      clusters=clusters)
@@ -214,6 +235,40 @@ def compare(small: ErrorModel, large: ErrorModel, data: PoseData, folds: np.ndar
     return out
 
 
+def one_step_chi2(small_fit: FitResult, large: ErrorModel, data: PoseData, *, prior_large: Prior,
+                  theta_large0: np.ndarray, fit_cfg: FitConfig) -> float:
+    """The effect terms' chi2 after one Gauss-Newton step of ``large`` from ``theta_large0``
+    (p,) (the small model's value, the effect's terms at 0): a score test on the cells
+    ``data`` (g), in ~one Jacobian instead of a robust fit.
+
+    The step solves ``(J^T W J + P) step = -(J^T W r + P (theta - mu))`` on the whitened
+    residuals (the noise following the scales, as the fit's); the chi2 is the effect's
+    part of the step against the same linear covariance ``(J^T W J + P)^-1``. The weights
+    ``W`` are Huber's on ``small_fit``'s residuals (shape (n,), at its robust scale), with
+    no cell rejected: a cell the small model cannot explain, but the effect can, still
+    speaks. The full fit's chi2 divides by a covariance at least this large (inflated by
+    the reduced chi2, the clusters' sandwich and the curvature), so where the step lands
+    where the fit does the one-step chi2 is the larger.
+    """
+    z = small_fit.residuals_g / small_fit.sigma_g
+    scale = float(small_fit.extra.get("robust_scale", 1.0))
+    w = np.minimum(1.0, fit_cfg.robust_c / np.maximum(np.abs(z / scale), 1e-300))
+    noise = NoiseModel.from_poses(data.mean, data.sd, data.count, fit_cfg, large, data.temp_c, data.t_s).scaled(w)
+    _, _, rw, jw = noise.whitened(large, theta_large0, data.mean, data.temp_c, data.t_s)
+    lam = prior_large.precision()
+    a = jw.T @ jw + lam
+    g = jw.T @ rw + lam @ (theta_large0 - prior_large.mean)
+    effect = next(e for e in large.effects if e not in small_fit.model.effects)
+    sl = large.index(effect)
+    try:
+        step = -np.linalg.solve(a, g)
+        cov = np.linalg.inv(a)[sl, sl]
+        chi2 = float(step[sl] @ np.linalg.solve(cov, step[sl]))
+    except np.linalg.LinAlgError:
+        return float("inf")  # no screen: the fit decides
+    return chi2 if np.isfinite(chi2) else float("inf")
+
+
 def paired_z(d: np.ndarray, clusters: np.ndarray | None = None) -> float:
     """z-score of the mean of paired differences ``d`` (n,). With ``clusters`` (n,) labels
     (the direction cell of each pose cell: its time blocks share their errors), the standard
@@ -245,6 +300,14 @@ def change_record(c: Comparison, change: str, from_model: str, to_model: str) ->
 def wald_significant(cfg: SelectionConfig):
     """``(chi2, dof) -> bool``: the effect terms are significant at ``cfg.alpha``."""
     return lambda chi2, dof: chi2 > float(chdtri(dof, cfg.alpha))
+
+
+def wald_far_below(cfg: SelectionConfig):
+    """``(chi2, dof) -> bool``: a one-step chi2 below ``screen_ratio`` of the threshold at
+    ``cfg.alpha``; None (no screen, nothing computed) when ``screen_ratio`` is 0."""
+    if cfg.screen_ratio <= 0:
+        return None
+    return lambda chi2, dof: chi2 < cfg.screen_ratio * float(chdtri(dof, cfg.alpha))
 
 
 def wald_not_significant_to_keep(cfg: SelectionConfig):
