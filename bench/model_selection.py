@@ -16,6 +16,7 @@ calibrator down-weights the cells from before one).
     python bench/model_selection.py                       # 20 + 20 with the effect, 50 clean
     python bench/model_selection.py --effects temperature_bias,temperature_scale --devices 5 --clean-devices 10
     python bench/model_selection.py --schedule shipped --effects "" --clean-devices 50   # daily checks
+    python bench/model_selection.py --screen-ratio 0      # every candidate fitted (no one-step screen)
 """
 
 from __future__ import annotations
@@ -46,11 +47,15 @@ def main(argv=None) -> int:
     ap.add_argument("--schedule", choices=("protocol", "shipped"), default="protocol",
                     help="protocol: selfcal replay's default (a refit, and so at most one check, every 3 days); "
                          "shipped: the calibrator's own scheduler (a check every day of data, as the service runs)")
+    ap.add_argument("--screen-ratio", type=float, default=None,
+                    help="[selection] screen_ratio (default: the shipped one; 0 fits every candidate at every check)")
     args = ap.parse_args(argv)
     cfg = load_config(None)
+    if args.screen_ratio is not None:
+        cfg.setdefault("selection", {})["screen_ratio"] = args.screen_ratio
     kw = dict(days=args.days, refit_every_days=3.0 if args.schedule == "protocol" else 0.0, config=cfg,
               workers=args.workers, progress=True)
-    print(f"schedule: {args.schedule}")
+    print(f"schedule: {args.schedule}; screen_ratio {cfg.get('selection', {}).get('screen_ratio')}")
     for effect in [e for e in args.effects.split(",") if e]:
         t0 = time.perf_counter()
         sel = replay_fleet(args.devices, args.seed, effects=(effect,), model="affine9", **kw)
