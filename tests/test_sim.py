@@ -597,3 +597,31 @@ def test_simulated_acceleration_crosses_the_ble_codec_unchanged():
     acc = np.concatenate(decoded)
     assert np.abs(ch.acc_g[:n]).max() > 1.0  # gait: the whole range, not one posture's levels
     np.testing.assert_array_equal(acc, ch.acc_g[:n])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_gait_attitude_curves_are_numpys_interpolation_bit_for_bit(seed, monkeypatch):
+    """The toe-off and heel-strike curves take one floor on the uniform grid instead of two
+    of np.interp's binary searches: the same values to the last bit, at the grid's points,
+    between them, beyond both ends, and in walking and stairs bouts."""
+    from selfcal.sim import motion
+    from selfcal.sim.config import GaitConfig
+
+    rng = np.random.default_rng(seed)
+    last = len(motion._GRID) - 1
+    grid = np.arange(last + 1, dtype=float)
+    x = np.concatenate([rng.uniform(-3.0, last + 3.0, 200_000), grid, grid + 1e-9, grid - 1e-9,
+                        [0.0, -0.0, float(last), np.nextafter(last, 0), np.nextafter(last, 2 * last), 1e6, -1e6]])
+    got = motion._attitude_curves(x)
+    for g, curve in zip(got, (motion._TO_CURVE, motion._HS_CURVE)):
+        assert np.array_equal(g.view(np.int64), np.interp(x, grid, curve).view(np.int64))
+    bouts = [(1500, 1.1, 0.0, False), (900, 1.3, 1.0, True), (700, 1.2, -1.0, True)]
+    made = {}
+    for impl in ("floor", "interp"):
+        if impl == "interp":
+            monkeypatch.setattr(motion, "_attitude_curves", lambda gi: tuple(
+                np.interp(gi, grid, c) for c in (motion._TO_CURVE, motion._HS_CURVE)))
+        made[impl] = [motion.gait_force(n, 20.0, cyc, 1.3, 0.0, climb, 0.05, stairs, GaitConfig(),
+                                        np.random.default_rng(seed))[0] for n, cyc, climb, stairs in bouts]
+    for a, b in zip(made["floor"], made["interp"]):
+        assert np.array_equal(a.view(np.int64), b.view(np.int64))

@@ -45,6 +45,30 @@ _HS_FRAC = np.array([0, 0, 0, 0, 0, 0.5, 1.0, 1.0, 0.45, 0, 0])
 _GRID = np.linspace(0.2, 1.2, 2001)
 _TO_CURVE = PchipInterpolator(_PSI_KNOTS, _TO_FRAC)(_GRID)
 _HS_CURVE = PchipInterpolator(_PSI_KNOTS, _HS_FRAC)(_GRID)
+#: the curves' slopes between grid points (index units), as ``np.interp`` computes them
+_GRID_X = np.arange(len(_GRID), dtype=float)
+_TO_SLOPE = (_TO_CURVE[1:] - _TO_CURVE[:-1]) / (_GRID_X[1:] - _GRID_X[:-1])
+_HS_SLOPE = (_HS_CURVE[1:] - _HS_CURVE[:-1]) / (_GRID_X[1:] - _GRID_X[:-1])
+
+
+def _attitude_curves(gi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.interp(gi, arange(len(_GRID)), curve)`` of the toe-off and heel-strike curves at
+    grid positions ``gi`` (m,) (index units, finite), bit for bit, with one floor for
+    both instead of two binary searches: on the uniform integer grid the interval of
+    ``x`` is ``floor(x)``, and the value ``slope[j] (x - j) + curve[j]`` is numpy's
+    formula; outside ``[0, last]`` the end values, at ``last`` the last one."""
+    last = len(_GRID) - 1
+    j = np.floor(gi)
+    np.clip(j, 0.0, last - 1, out=j)
+    k = j.astype(np.intp)
+    dx = gi - j
+    out = []
+    for curve, slope in ((_TO_CURVE, _TO_SLOPE), (_HS_CURVE, _HS_SLOPE)):
+        v = slope[k] * dx + curve[k]
+        v[gi >= last] = curve[last]
+        v[gi < 0] = curve[0]
+        out.append(v)
+    return out[0], out[1]
 
 
 def gravity_foot(pitch_rad: np.ndarray, roll_rad: np.ndarray) -> np.ndarray:
@@ -218,16 +242,23 @@ def gait_force(
         H = cfg.clearance_m
         imp = cfg.impact_g
     # forward
+    # the swing's terms are computed where they apply (rows by integer index): the values
+    # of np.where(in, expression, 0.0), bit for bit, without the sines and cosines of the
+    # stance, ~60 % of the points
     ux = (psi - 0.40) / 0.58
-    inx = (ux > 0) & (ux < 1)
-    ax = np.where(inx, 2 * np.pi * L * np.sin(2 * np.pi * ux) / (0.58 * T) ** 2, 0.0)
+    ix = np.flatnonzero((ux > 0) & (ux < 1))
+    ax = np.zeros(m)
+    ax[ix] = 2 * np.pi * L[ix] * np.sin(2 * np.pi * ux[ix]) / (0.58 * T[ix]) ** 2
     # vertical and lateral
     uz = (psi - 0.38) / 0.62
     inz = (uz > 0) & (uz < 1)
-    bump = np.where(inz, 2 * np.pi**2 * (np.cos(2 * np.pi * uz) - np.cos(4 * np.pi * uz)) / (0.62 * T) ** 2, 0.0)
+    iz = np.flatnonzero(inz)
+    uz_sw, t_sw = uz[iz], T[iz]
+    bump = np.zeros(m)
+    bump[iz] = 2 * np.pi**2 * (np.cos(2 * np.pi * uz_sw) - np.cos(4 * np.pi * uz_sw)) / (0.62 * t_sw) ** 2
     az = H * amp * bump
     if climb:
-        az += np.where(inz, climb * 2 * cfg.stairs_step_height_m * 2 * np.pi * np.sin(2 * np.pi * uz) / (0.62 * T) ** 2, 0.0)
+        az[iz] += climb * 2 * cfg.stairs_step_height_m * 2 * np.pi * np.sin(2 * np.pi * uz_sw) / (0.62 * t_sw) ** 2
     side = rng.choice([-1.0, 1.0])
     ay = side * cfg.lateral_m * bump
     # by axis from here on (contiguous rows; the same operations on each value as on the
@@ -243,15 +274,17 @@ def gait_force(
     fx -= 0.5 * pulse
     # attitude
     gi = (psi - 0.2) * (len(_GRID) - 1)
-    curve_to = np.interp(gi, np.arange(len(_GRID)), _TO_CURVE)
-    curve_hs = np.interp(gi, np.arange(len(_GRID)), _HS_CURVE)
+    curve_to, curve_hs = _attitude_curves(gi)  # np.interp's values, one floor for both
     pitch = flat_pitch_rad + amp * (to_p * curve_to + hs_p * curve_hs)
     swing_roll = np.zeros(m)
-    iz = np.flatnonzero(inz)
-    swing_roll[iz] = np.power(np.sin(np.pi * uz[iz]), 4)  # as np.where(inz, sin(pi uz) ** 4, 0.0)
+    swing_roll[iz] = np.power(np.sin(np.pi * uz_sw), 4)  # as np.where(inz, sin(pi uz) ** 4, 0.0)
     roll = side * np.deg2rad(cfg.swing_roll_deg) * swing_roll
     ct, st = np.cos(pitch), np.sin(pitch)
-    cr, sr = np.cos(roll), np.sin(roll)
+    # off the swing the roll is a signed zero, whose cosine is 1 and sine itself: the
+    # cosine and sine are taken where it is not (the same values, bit for bit)
+    cr, sr = np.ones(m), roll.copy()
+    roll_sw = roll[iz]
+    cr[iz], sr[iz] = np.cos(roll_sw), np.sin(roll_sw)
     gx = ct * fx + st * fz
     gz = -st * fx + ct * fz
     axes = (gx, cr * fy + sr * gz, -sr * fy + cr * gz)  # world_to_foot's columns
