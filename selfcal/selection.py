@@ -250,6 +250,9 @@ def one_step_chi2(small_fit: FitResult, large: ErrorModel, data: PoseData, *, pr
     the reduced chi2, the clusters' sandwich and the curvature), so where the step lands
     where the fit does the one-step chi2 is the larger.
     """
+    nz = small_fit.normalizer
+    if len(small_fit.residuals_g) != len(data.mean) or nz.scale != 1.0 or np.any(np.asarray(nz.center) != 0):
+        return float("inf")  # not the fit of these cells in g: no screen, the fit decides
     z = small_fit.residuals_g / small_fit.sigma_g
     scale = float(small_fit.extra.get("robust_scale", 1.0))
     w = np.minimum(1.0, fit_cfg.robust_c / np.maximum(np.abs(z / scale), 1e-300))
