@@ -183,17 +183,17 @@ def compare(small: ErrorModel, large: ErrorModel, data: PoseData, folds: np.ndar
     """
     effect = next(e for e in large.effects if e not in small.effects)
     theta_large0 = large.extend_theta(theta_small, small)
+    sl = large.index(effect)
     if small_fit is not None and screen_if is not None:
         chi2 = one_step_chi2(small_fit, large, data, prior_large=prior_large, theta_large0=theta_large0,
                              fit_cfg=fit_cfg)
-        dof = large.index(effect).stop - large.index(effect).start
+        dof = sl.stop - sl.start
         if screen_if(chi2, dof):
             return Comparison(effect, small.name, large.name, np.nan, np.nan, np.nan, 0, chi2, dof, None,
                               ["not fitted: the one-step chi2 is far below the threshold"], screened=True)
     # the large model on every cell first: its effect terms against their covariance
     full = fit_poses(large, data, prior=prior_large, theta0_u=theta_large0, cfg=fit_cfg, robust=True,
                      clusters=clusters)
-    sl = large.index(effect)
     coef = full.theta_u[sl]
     try:
         wald = float(coef @ np.linalg.solve(full.cov_u[sl, sl], coef))

@@ -62,13 +62,15 @@ def _attitude_curves(gi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     np.clip(j, 0.0, last - 1, out=j)
     k = j.astype(np.intp)
     dx = gi - j
-    out = []
-    for curve, slope in ((_TO_CURVE, _TO_SLOPE), (_HS_CURVE, _HS_SLOPE)):
+    right, left = gi >= last, gi < 0
+
+    def curve_at(curve: np.ndarray, slope: np.ndarray) -> np.ndarray:
         v = slope[k] * dx + curve[k]
-        v[gi >= last] = curve[last]
-        v[gi < 0] = curve[0]
-        out.append(v)
-    return out[0], out[1]
+        v[right] = curve[last]
+        v[left] = curve[0]
+        return v
+
+    return curve_at(_TO_CURVE, _TO_SLOPE), curve_at(_HS_CURVE, _HS_SLOPE)
 
 
 def gravity_foot(pitch_rad: np.ndarray, roll_rad: np.ndarray) -> np.ndarray:
@@ -251,8 +253,7 @@ def gait_force(
     ax[ix] = 2 * np.pi * L[ix] * np.sin(2 * np.pi * ux[ix]) / (0.58 * T[ix]) ** 2
     # vertical and lateral
     uz = (psi - 0.38) / 0.62
-    inz = (uz > 0) & (uz < 1)
-    iz = np.flatnonzero(inz)
+    iz = np.flatnonzero((uz > 0) & (uz < 1))
     uz_sw, t_sw = uz[iz], T[iz]
     bump = np.zeros(m)
     bump[iz] = 2 * np.pi**2 * (np.cos(2 * np.pi * uz_sw) - np.cos(4 * np.pi * uz_sw)) / (0.62 * t_sw) ** 2
@@ -277,7 +278,7 @@ def gait_force(
     curve_to, curve_hs = _attitude_curves(gi)  # np.interp's values, one floor for both
     pitch = flat_pitch_rad + amp * (to_p * curve_to + hs_p * curve_hs)
     swing_roll = np.zeros(m)
-    swing_roll[iz] = np.power(np.sin(np.pi * uz_sw), 4)  # as np.where(inz, sin(pi uz) ** 4, 0.0)
+    swing_roll[iz] = np.power(np.sin(np.pi * uz_sw), 4)  # as np.where(0 < uz < 1, sin(pi uz) ** 4, 0.0)
     roll = side * np.deg2rad(cfg.swing_roll_deg) * swing_roll
     ct, st = np.cos(pitch), np.sin(pitch)
     # off the swing the roll is a signed zero, whose cosine is 1 and sine itself: the
