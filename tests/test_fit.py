@@ -240,3 +240,38 @@ def test_variance_components_take_a_pinned_bound_as_that_value():
     for bounds in (((1.0, 1.0), (1.0, 10.0)), ((1.0, 400.0), (2.0, 2.0)), ((3.0, 3.0), (2.0, 2.0))):
         c0, c1 = variance_components(A9, fit, p, 1e-4, bounds=bounds)
         assert bounds[0][0] <= c0 <= bounds[0][1] and bounds[1][0] <= c1 <= bounds[1][1]
+
+
+def test_median_abs_is_numpys_median_bit_for_bit():
+    """The robust scale's median (:func:`selfcal.fit._median_abs`) is ``np.median(np.abs(z))``
+    to the last bit: odd and even lengths, ties, infinities and NaNs (then NaN), 3 seeds."""
+    from selfcal.fit import _median_abs, robust_scale
+
+    for seed in (0, 1, 2):
+        rng = np.random.default_rng(seed)
+        for trial in range(3000):
+            n = int(rng.integers(1, 300))
+            z = rng.standard_normal(n) * 10 ** rng.uniform(-4, 3)
+            if trial % 3 == 0:
+                z = np.round(z, 1)  # ties, and zeros of both signs
+            if trial % 7 == 0:
+                z[rng.integers(0, n)] = np.inf
+            if trial % 11 == 0:
+                z[rng.integers(0, n)] = np.nan
+            want = float(np.median(np.abs(z)))
+            got = _median_abs(z)
+            assert (np.isnan(want) and np.isnan(got)) or (got == want and np.signbit(got) == np.signbit(want)), (seed, trial)
+    assert robust_scale(np.array([np.nan, 1.0, 2.0])) == 1.0  # not finite: the stated noise
+    assert robust_scale(np.array([3.0, -3.0, 3.0])) == 1.4826 * 3.0
+
+
+def test_sphere_readings_directions_are_shared_and_read_only():
+    """The predicted sphere RMS's directions are computed once per count and cannot be
+    changed by a caller; they are :func:`sphere_directions`' values."""
+    from selfcal.fit import _sphere_directions_read_only, sphere_directions
+
+    a = _sphere_directions_read_only(256)
+    assert a is _sphere_directions_read_only(256)
+    assert np.array_equal(a, sphere_directions(256))
+    with pytest.raises(ValueError):
+        a[0, 0] = 1.0
