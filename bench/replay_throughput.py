@@ -16,7 +16,11 @@ their own (``--no-startup`` skips them). With the kernels loaded, a plan shorter
 days uses them too, where a fresh ``selfcal replay`` plans it in Python (the same plan,
 bit for bit; ``selfcal.sim.plan_numba.LOAD_FOR_DAYS``). A long-horizon row (``--long-days``, one device
 in this process, 365 days by default) gives the rate a fleet-year replay runs at, with its
-user and system CPU: memory touched for the first time costs system time here.
+user and system CPU, its minor page faults and the process's peak RSS: memory touched for
+the first time costs system time here. It is run twice (``--long-runs``): the second run
+reuses memory the first one touched, so the two tell compute from first-touch memory (on
+this VM, a fresh process's first touches cost ~2 s of a year's simulator, see
+docs/performance.md).
 
 Then, unless ``--no-stages``, where a samples-level device-day goes (one device, one
 process, the same seed): the simulator alone (the 20 Hz stream of every channel), the
@@ -63,6 +67,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-startup", action="store_true", help="skip the start-up rows (a fresh process, a cold cache)")
     ap.add_argument("--long-days", type=float, default=365.0,
                     help="days of the long-horizon row (one device, this process, poses level; 0: skip)")
+    ap.add_argument("--long-runs", type=int, default=2,
+                    help="times the long-horizon row is run in this process (the later ones on memory already touched)")
     args = ap.parse_args(argv)
     cfg = load_config()
     effects = tuple(e for e in args.effects.split(",") if e)
@@ -84,7 +90,8 @@ def main(argv=None) -> int:
             cluster.close()
     print_breakdown(breakdown, args.devices * args.days)
     if args.long_days > 0:
-        print_long(cfg, args.long_days, args.refit_every_days, args.seed, effects)
+        for run in range(max(args.long_runs, 1)):
+            print_long(cfg, args.long_days, args.refit_every_days, args.seed, effects, run)
     if not args.no_startup:
         print_startup(startup_rows)
     if not args.no_stages:
@@ -177,9 +184,10 @@ def start_dask(workers: int) -> tuple:
     return cluster, client, time.perf_counter() - t0
 
 
-def print_long(cfg: dict, days: float, refit_every_days: float, seed: int, effects: tuple = ()) -> None:
-    """One device over a long horizon in this process (poses level): device-days/s, and its
-    user and system CPU (system: mostly memory touched for the first time)."""
+def print_long(cfg: dict, days: float, refit_every_days: float, seed: int, effects: tuple = (), run: int = 0) -> None:
+    """One device over a long horizon in this process (poses level): device-days/s, its
+    user and system CPU (system: mostly memory touched for the first time), its minor page
+    faults and the process's peak RSS so far; ``run`` > 0: a repeat in the same process."""
     import resource
 
     from selfcal.replay import _replay_one
@@ -189,9 +197,11 @@ def print_long(cfg: dict, days: float, refit_every_days: float, seed: int, effec
     res = _replay_one(dict(days=days, refit_every_days=refit_every_days, seed=seed, config=cfg, level="poses",
                            effects=effects))
     wall, r1 = time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF)
-    print(f"\nlong horizon, one device (seed {seed}) x {days:g} days at the poses level, this process: "
+    again = f", run {run + 1} in this process (memory its earlier runs touched reused)" if run else ""
+    print(f"\nlong horizon, one device (seed {seed}) x {days:g} days at the poses level, this process{again}: "
           f"{wall:.1f} s, {days / wall:.1f} device-days/s (CPU: user {r1.ru_utime - r0.ru_utime:.1f} s, "
-          f"system {r1.ru_stime - r0.ru_stime:.1f} s); final sphere RMS "
+          f"system {r1.ru_stime - r0.ru_stime:.1f} s; simulator {res['stage_s']['simulation']:.1f} s; "
+          f"{r1.ru_minflt - r0.ru_minflt} minor page faults, peak RSS {r1.ru_maxrss / 1024:.0f} MB); final sphere RMS "
           f"{res['refits'][-1]['sphere_norm_rms_mg']:.3f} mg", flush=True)
 
 
