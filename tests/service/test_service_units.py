@@ -670,15 +670,18 @@ def test_a_batch_stored_after_its_request_timed_out_is_fed_once_it_is_resent(tmp
             gate = threading.Event()
             self._submit(lambda conn: gate.wait(5))  # the writer busy: the batch and a slow op in one group
             fut = super().submit_batch(*a, **k)
-            self._submit(lambda conn: time.sleep(1.0))  # a slow commit (an fsync on a busy disk)
+            # a slow commit (an fsync on a busy disk) that ends only once the client has its
+            # 503: the timeout is met for sure, however slow or loaded the machine
+            self._submit(lambda conn: self.release.wait(30))
             gate.set()
             return fut
 
     db = str(tmp_path / "t.db")
     store = SlowCommits(db)
+    store.release = threading.Event()
     settings = load_settings(None, environ={}, overrides={
         "db_path": db, "api_keys": KEY_SPEC, "calibrator": "service_fakes:FakeCalibrator",
-        "write_timeout_s": 0.5, "gc_freeze": False})
+        "write_timeout_s": 2.0, "gc_freeze": False})  # ample for the ordinary writes under load
     app = create_app(settings, config={"fake": {"publish_after_samples": 30}}, store=store)
 
     def post(client, seq):
@@ -691,7 +694,10 @@ def test_a_batch_stored_after_its_request_timed_out_is_fed_once_it_is_resent(tmp
         for seq in range(3):
             assert post(client, seq).status_code == 200
         store.slow_next = True
-        assert post(client, 3).status_code == 503  # ... and stored a second later
+        try:
+            assert post(client, 3).status_code == 503  # ... and stored just after
+        finally:
+            store.release.set()
         deadline = time.monotonic() + 10
         while store.pending_batches("d1", 10) == [] and time.monotonic() < deadline:
             time.sleep(0.05)
