@@ -434,7 +434,8 @@ def test_the_schedule_table_by_column_is_the_table_by_row():
     b.add_block(np.random.default_rng(5).normal(size=(3, len(wearer._COLUMNS))))
     b.rows.append(tuple(range(len(wearer._COLUMNS), 2 * len(wearer._COLUMNS))))
     cols = b.columns()
-    assert cols.flags.c_contiguous and np.array_equal(cols, b.table().T)
+    assert all(c.flags.c_contiguous for c in cols) and np.array_equal(cols, b.table().T)
+    assert np.shares_memory(cols, b.columns())  # the builder's buffer itself, not a copy
     assert np.array_equal(wearer._Builder(SimConfig(), np.random.default_rng(3)).columns(),
                           np.empty((len(wearer._COLUMNS), 0)))
     keep = np.array([True, True, True, False, False])

@@ -77,6 +77,37 @@ def test_the_kernels_plan_the_python_schedule_bit_for_bit(monkeypatch, compiled,
 
 
 @needs_numba
+def test_a_kernel_that_outgrows_the_room_reserved_for_it_plans_the_same_rows(monkeypatch, compiled):
+    """The kernel writes into the builder's buffer, and makes a bigger one itself when the
+    room reserved ahead runs out: with no room to spare at all (a buffer of one row,
+    reserved to the exact size asked), the plan is the Python planner's, bit for bit."""
+    def exact(self, k):
+        if self._n + k > self._cols.shape[1]:
+            bigger = np.empty((len(wearer._COLUMNS), self._n + k))
+            bigger[:, :self._n] = self._cols[:, :self._n]
+            self._cols = bigger
+
+    grown = []
+
+    def worn(*args):
+        out = compiled.worn(*args)
+        grown.append(out[0] is not args[-2])
+        return out
+
+    cfg = SimConfig.from_section(CONFIGS["restless"])
+    slow, slow_rows, slow_state = plan(monkeypatch, None, cfg, 5, 2.0)
+    monkeypatch.setattr(wearer._Builder, "_INITIAL_ROWS", 1)
+    monkeypatch.setattr(wearer._Builder, "reserve", exact)
+    fast, fast_rows, fast_state = plan(monkeypatch, type(compiled)(worn=worn, start_states=compiled.start_states),
+                                       cfg, 5, 2.0)
+    assert any(grown) and same_bits(fast_rows.pop("table"), slow_rows.pop("table")) and fast_rows == slow_rows
+    for f in dataclasses.fields(slow):
+        a, b = getattr(fast, f.name), getattr(slow, f.name)
+        assert same_bits(a, b) if isinstance(b, np.ndarray) else a == b, f.name
+    assert fast_state == slow_state
+
+
+@needs_numba
 def test_the_kernels_pass_their_first_use_check_where_numba_is(monkeypatch, compiled, recwarn):
     monkeypatch.setenv("SELFCAL_NUMBA", "1")
     plan_numba.reset()

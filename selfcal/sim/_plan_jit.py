@@ -11,8 +11,9 @@ AVX-512). :mod:`selfcal.sim.wearer` checks the kernel against the Python planner
 first use and falls back to it if any row differs.
 
 Every constant the planner reads comes in ``par`` (float64, the ``P_*`` slots below) and
-the semi-Markov chain's tables in ``next_code`` / ``next_cdf`` / ``next_len``; rows come
-out as ``(n, 17)`` float64 in :data:`selfcal.sim.wearer._COLUMNS`' order. Activity
+the semi-Markov chain's tables in ``next_code`` / ``next_cdf`` / ``next_len``; rows go
+into the builder's ``(17, cap)`` float64 buffer by column, in
+:data:`selfcal.sim.wearer._COLUMNS`' order. Activity
 codes are literals here (numba bakes a module's globals into its cached code): SIT 1,
 STAND 2, WALK 3, STAIRS 4; motion STILL 0, MOVE 1, GAIT 2; states sit 0, stand 1,
 walk 2, stairs 3.
@@ -85,27 +86,39 @@ def _nonneg(v):
 
 
 @numba.njit(cache=True)
-def _grow(rows, n):
-    if n < rows.shape[0]:
-        return rows
-    bigger = np.empty((2 * rows.shape[0] + 64, rows.shape[1]))
-    bigger[:n] = rows[:n]
+def _grow(cols, n):
+    """``cols`` (17, cap) with room for column ``n`` (a bigger copy when it is full: rare,
+    the builder reserves room for the kernel's rows beforehand in numpy's memory)."""
+    if n < cols.shape[1]:
+        return cols
+    bigger = np.empty((cols.shape[0], 2 * cols.shape[1] + 64))
+    bigger[:, :n] = cols[:, :n]
     return bigger
 
 
+@numba.njit(cache=True, inline="always")
+def _put(cols, n, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11, v12, v13, v14, v15, v16):
+    """Row ``n`` of the plan, written by column."""
+    cols[0, n], cols[1, n], cols[2, n], cols[3, n], cols[4, n], cols[5, n] = v0, v1, v2, v3, v4, v5
+    cols[6, n], cols[7, n], cols[8, n], cols[9, n], cols[10, n], cols[11, n] = v6, v7, v8, v9, v10, v11
+    cols[12, n], cols[13, n], cols[14, n], cols[15, n], cols[16, n] = v12, v13, v14, v15, v16
+
+
 @numba.njit(cache=True)
-def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, load, next_still):
+def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, load, next_still, cols, n):
     """The semi-Markov chain of sit / stand / walk / stairs for ``total`` s, as
     ``_Builder.worn`` plans it.
 
     ``t`` (s), ``orient`` (2,) rad and ``load`` (4,) are the builder's state and
     ``next_still`` its next still id; ``sit_cdf`` is the sitting postures' cumulative
     distribution, ``next_code[s, :next_len[s]]`` / ``next_cdf[s]`` the states that follow
-    state ``s`` and their cumulative distribution. Returns ``(rows (n, 17), t, next_still)``;
-    ``orient`` and ``load`` are updated in place.
+    state ``s`` and their cumulative distribution. The rows are written by column into
+    ``cols`` (17, cap) float64 from column ``n`` on (the builder's buffer, allocated by
+    numpy: its large arrays get transparent huge pages, a kernel's own allocations 4 KiB
+    pages, ~7x the page faults). Returns ``(cols, n, t, next_still)``: ``cols`` itself, or
+    a bigger copy if it ran out of room, and the rows filled; ``orient`` and ``load`` are
+    updated in place.
     """
-    rows = np.empty((256, N_COLUMNS))
-    n = 0
     end = t + total
     state = 1  # stand
     climb = 1.0
@@ -181,12 +194,9 @@ def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, loa
                             sd = par[P_SIT_FIDGET_SD_G]
                             act = 1.0
                         # move: from the current orientation to the new posture, the load kept
-                        rows = _grow(rows, n)
-                        r = rows[n]
-                        r[0], r[1], r[2] = d, act, 1.0
-                        r[3], r[4], r[5], r[6] = orient[0], orient[1], new_p, new_r
-                        r[7], r[8], r[9], r[10], r[11] = sd, 0.0, 0.0, 0.0, 0.0
-                        r[12], r[13], r[14], r[15], r[16] = load[0], load[1], load[2], load[3], -1.0
+                        cols = _grow(cols, n)
+                        _put(cols, n, d, act, 1.0, orient[0], orient[1], new_p, new_r, sd, 0.0, 0.0, 0.0, 0.0,
+                             load[0], load[1], load[2], load[3], -1.0)
                         n += 1
                         t += d
                         orient[0], orient[1] = new_p, new_r
@@ -199,12 +209,9 @@ def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, loa
                         rest = d
                         while rest > 0:
                             piece = min(rest, par[P_MAX_STILL_PIECE_S])
-                            rows = _grow(rows, n)
-                            r = rows[n]
-                            r[0], r[1], r[2] = piece, act, 0.0
-                            r[3], r[4], r[5], r[6] = new_p, new_r, new_p, new_r
-                            r[7], r[8], r[9], r[10], r[11] = sway, 0.0, 0.0, 0.0, 0.0
-                            r[12], r[13], r[14], r[15], r[16] = new_load[0], new_load[1], new_load[2], new_load[3], sid
+                            cols = _grow(cols, n)
+                            _put(cols, n, piece, act, 0.0, new_p, new_r, new_p, new_r, sway, 0.0, 0.0, 0.0, 0.0,
+                                 new_load[0], new_load[1], new_load[2], new_load[3], sid)
                             n += 1
                             rest -= piece
                         t += d
@@ -235,19 +242,16 @@ def worn(rng, total, par, sit_cdf, next_code, next_cdf, next_len, t, orient, loa
             cycle = min(max(cycle, 0.7), 2.2)
             stride = max(stride, 0.3)
             flat = par[P_SHOE_PITCH] + slope
-            rows = _grow(rows, n)
-            r = rows[n]
-            r[0], r[1], r[2] = d, act, 2.0
-            r[3], r[4], r[5], r[6] = flat, 0.0, flat, 0.0
-            r[7], r[8], r[9], r[10], r[11] = 0.0, cycle, stride, slope, c_climb
-            r[12], r[13], r[14], r[15], r[16] = np.nan, 0.0, 0.0, 0.0, -1.0
+            cols = _grow(cols, n)
+            _put(cols, n, d, act, 2.0, flat, 0.0, flat, 0.0, 0.0, cycle, stride, slope, c_climb,
+                 np.nan, 0.0, 0.0, 0.0, -1.0)
             n += 1
             t += d
             orient[0], orient[1] = flat, 0.0
             for i in range(4):
                 load[i] = 1.0
         state = next_code[state, _pick(next_cdf[state], next_len[state], rng)]
-    return rows[:n].copy(), t, next_still
+    return cols, n, t, next_still
 
 
 #: ``temperature.segment_start_states``' recurrence (:func:`selfcal.sim.temperature.recurrence`,

@@ -155,11 +155,19 @@ class Schedule:
 class _Builder:
     """Accumulates segment rows (in seconds) while the day is planned."""
 
+    _INITIAL_ROWS = 4096  # the buffer's room at the start (a day of the default wearer)
+
     def __init__(self, cfg: SimConfig, rng: np.random.Generator):
         self.cfg = cfg
         self.rng = rng
-        self.rows: list[tuple] = []  # the latest rows, after those in ``blocks``
-        self.blocks: list[np.ndarray] = []  # earlier rows, (k, len(_COLUMNS)) each
+        self.rows: list[tuple] = []  # the latest rows (planned in Python), after those in the buffer
+        # earlier rows by column, (len(_COLUMNS), capacity) float64, the first ``_n`` filled.
+        # numpy allocates it (its large arrays get transparent huge pages; the kernel's own
+        # allocations got 4 KiB pages: 60 000 page faults for a year's plan) and the schedule
+        # reads its columns as they are, without a copy. Room not yet filled is never touched.
+        self._cols = np.empty((len(_COLUMNS), self._INITIAL_ROWS))
+        self._n = 0
+        self._rows_per_s = 0.0  # the most rows a second of a worn period has taken so far
         self.kernels = None  # the planner's numba kernels (plan_numba.kernels), or None: Python
         self._kernel_inputs: tuple | None = None  # their constants, built at first use
         self.t = 0.0
@@ -178,37 +186,47 @@ class _Builder:
 
     # -- primitives -------------------------------------------------------------
     def last_row(self):
-        """The latest row (a tuple, or a row of the last block), or None."""
+        """The latest row (a tuple, or a column of the buffer), or None."""
         if self.rows:
             return self.rows[-1]
-        return self.blocks[-1][-1] if self.blocks and len(self.blocks[-1]) else None
+        return self._cols[:, self._n - 1] if self._n else None
+
+    def reserve(self, k: int) -> None:
+        """Room in the buffer for ``k`` more rows (a copy into a bigger one, twice as large
+        at least, when it lacks it)."""
+        if self._n + k > self._cols.shape[1]:
+            bigger = np.empty((len(_COLUMNS), max(2 * self._cols.shape[1], self._n + k)))
+            bigger[:, :self._n] = self._cols[:, :self._n]
+            self._cols = bigger
+
+    def _flush(self) -> None:
+        """The rows planned in Python, into the buffer."""
+        if self.rows:
+            rows = np.array(self.rows, dtype=float)
+            self.rows = []
+            self._append(rows)
+
+    def _append(self, rows: np.ndarray) -> None:
+        k = len(rows)
+        self.reserve(k)
+        self._cols[:, self._n:self._n + k] = rows.T
+        self._n += k
 
     def add_block(self, rows: np.ndarray) -> None:
         """Append rows planned elsewhere, (k, len(_COLUMNS)) float64, after the rows so far."""
-        if self.rows:
-            self.blocks.append(np.array(self.rows, dtype=float))
-            self.rows = []
-        self.blocks.append(rows)
+        self._flush()
+        self._append(rows)
 
     def table(self) -> np.ndarray:
         """Every row so far, (m, len(_COLUMNS)) float64."""
-        parts = self._parts()
-        return np.concatenate(parts) if parts else np.empty((0, len(_COLUMNS)))
+        return np.ascontiguousarray(self.columns().T)
 
     def columns(self) -> np.ndarray:
         """:meth:`table` by column: (len(_COLUMNS), m) float64, each column a contiguous
         row (the same values; a year's table is ~1.7 M rows, and selecting its columns
-        from rows read every one strided)."""
-        parts = self._parts()
-        out = np.empty((len(_COLUMNS), sum(len(x) for x in parts)))
-        at = 0
-        for x in parts:
-            out[:, at: at + len(x)] = x.T
-            at += len(x)
-        return out
-
-    def _parts(self) -> list[np.ndarray]:
-        return self.blocks + ([np.array(self.rows, dtype=float)] if self.rows else [])
+        from rows read every one strided). A view of the builder's buffer, not a copy."""
+        self._flush()
+        return self._cols[:, :self._n]
 
     def still(self, dur: float, act: int, orient: tuple[float, float], sd_g: float, load) -> None:
         last = self.last_row()
@@ -404,13 +422,19 @@ class _Builder:
         return self._kernel_inputs
 
     def worn_compiled(self, kernel, total: float) -> None:
-        """:meth:`worn` by the numba kernel (:mod:`selfcal.sim._plan_jit`)."""
+        """:meth:`worn` by the numba kernel (:mod:`selfcal.sim._plan_jit`), its rows written
+        into the buffer (room reserved for what the busiest worn second so far took, and
+        the kernel grows the buffer itself beyond that)."""
         orient = np.array(self.orient, dtype=float)
         load = np.array(self.load, dtype=float)
-        rows, t, next_still = kernel(self.rng, float(total), *self.kernel_inputs(), float(self.t), orient, load,
-                                     int(self.next_still))
-        if len(rows):
-            self.add_block(rows)
+        self._flush()
+        n0 = self._n
+        self.reserve(int(1.5 * self._rows_per_s * total) + 256)
+        cols, n, t, next_still = kernel(self.rng, float(total), *self.kernel_inputs(), float(self.t), orient,
+                                        load, int(self.next_still), self._cols, n0)
+        self._cols, self._n = cols, int(n)
+        if total > 0:
+            self._rows_per_s = max(self._rows_per_s, (self._n - n0) / total)
         self.t, self.next_still = t, int(next_still)
         self.orient, self.load = (float(orient[0]), float(orient[1])), tuple(load.tolist())
 
@@ -435,6 +459,11 @@ class _Builder:
                 self.gait(min(float(_draw(a.stairs, rng)), left), STAIRS, climb)
             names, cdf = self._next_state[state]
             state = names[_pick(cdf, rng)]
+
+
+#: The most rows a plan reserves room for after its first day (~1.1 GB of address space,
+#: ~3 years of the default wearer); a longer plan grows its buffer by doubling beyond it.
+_RESERVE_MAX_ROWS = 8_000_000
 
 
 def make_schedule(config: SimConfig, rng: np.random.Generator, days: float, rate_hz: float | None = None) -> Schedule:
@@ -493,6 +522,10 @@ def make_schedule(config: SimConfig, rng: np.random.Generator, days: float, rate
         next_ws = day0 + SECONDS_PER_DAY + 3600 * dc.wear_start_h
         b.off(max(next_ws - b.t, 600.0))
         d += 1
+        if d == 1 and b.t < total_s:
+            # room for the rest at the first day's rate and a quarter more (never touched
+            # unless filled), not a year's plan copied through a dozen doublings
+            b.reserve(min(int(1.25 * (b._n + len(b.rows)) / b.t * (total_s - b.t)) + 4096, _RESERVE_MAX_ROWS))
     return _finish(b, config, rate, total_s, day_draws)
 
 
