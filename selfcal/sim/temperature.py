@@ -103,7 +103,8 @@ def segment_start_states(
         return start_states_python(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot, temp_init_c)
     eh, et, ratio, base = _recurrence_terms(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot)
     return kernel.start_states(eh, et, ratio, base, np.ascontiguousarray(heat_target_c, dtype=float),
-                               np.ascontiguousarray(on_foot, dtype=bool), float(temp_init_c))
+                               np.ascontiguousarray(on_foot, dtype=bool), float(temp_init_c),
+                               np.empty(len(eh)), np.empty(len(eh)))
 
 
 def _recurrence_terms(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot):
@@ -120,17 +121,19 @@ def start_states_python(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foo
     eh, et, ratio, base = _recurrence_terms(dur_s, target_c, heat_target_c, tau_t_s, tau_h_s, on_foot)
     # the scalar recurrence on Python floats (lists: far faster to index than arrays)
     return recurrence(eh.tolist(), et.tolist(), ratio.tolist(), base.tolist(), heat_target_c.tolist(),
-                      on_foot.tolist(), float(temp_init_c))
+                      on_foot.tolist(), float(temp_init_c), np.empty(len(eh)), np.empty(len(eh)))
 
 
-def recurrence(eh, et, ratio, base, heat_target, on_foot, temp_init: float) -> tuple[np.ndarray, np.ndarray]:
-    """The temperature and walking heat (degC) at the start of every segment, (m,) each,
-    one closed-form step per segment from ``temp_init`` (degC): sequences of the per-segment
-    decays ``eh``, ``et``, heat ratio, plateau ``base`` (degC), walking heat target (degC)
-    and on-foot flags. Plain Python, also compiled as it is by :mod:`selfcal.sim._plan_jit`."""
+def recurrence(eh, et, ratio, base, heat_target, on_foot, temp_init: float, temp0: np.ndarray,
+               heat0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The temperature and walking heat (degC) at the start of every segment, written into
+    ``temp0`` and ``heat0`` ((m,) float64 each, returned), one closed-form step per segment
+    from ``temp_init`` (degC): sequences of the per-segment decays ``eh``, ``et``, heat
+    ratio, plateau ``base`` (degC), walking heat target (degC) and on-foot flags. Plain
+    Python, also compiled as it is by :mod:`selfcal.sim._plan_jit`. The outputs come from
+    the caller: numpy's large arrays get transparent huge pages, a kernel's own 4 KiB
+    pages (a year's two outputs: ~6 500 page faults more)."""
     m = len(eh)
-    temp0 = np.empty(m)
-    heat0 = np.empty(m)
     t, h = temp_init, 0.0
     for i in range(m):
         temp0[i] = t
