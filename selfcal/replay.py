@@ -272,7 +272,7 @@ def replay(
     rng = np.random.default_rng(seed)
     with clock("simulation"):
         sim = Simulation(sim_cfg, rng, days=days, seed=seed)
-        poses = sim.poses()
+        poses = sim.poses(pressure=False)  # (no calibrator takes a window's pressure)
     cal_cfg = _protocol_config(config, refit_every_days)
     sd_max = float(section(cal_cfg, "detector").get("sd_max_g", 0.010))
     keep = np.all(poses.sd_g <= sd_max, axis=1)

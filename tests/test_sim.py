@@ -422,6 +422,21 @@ def test_the_pose_table_does_not_depend_on_the_block_its_windows_are_computed_in
     assert abs(float(np.mean(z))) < 0.05 and 0.9 < float(np.std(z)) < 1.1
 
 
+def test_poses_without_pressure_keep_every_other_column_bit_for_bit():
+    """A replay asks for its still windows without the pressure channels (it feeds none):
+    they are the windows' generator's last draws, so every other column is the same."""
+    import dataclasses
+
+    for seed in (3, 4):
+        whole, lean = (Simulation(SimConfig(), np.random.default_rng(seed), days=2.0, seed=seed).poses(pressure=p)
+                       for p in (True, False))
+        assert lean.pressure_kpa is None and whole.pressure_kpa.shape == (len(whole), 4)
+        for f in dataclasses.fields(whole):
+            if f.name != "pressure_kpa":
+                a, b = getattr(whole, f.name), getattr(lean, f.name)
+                assert a.dtype == b.dtype and np.array_equal(a, b) and np.array_equal(np.signbit(a), np.signbit(b)), f.name
+
+
 def test_the_schedule_table_by_column_is_the_table_by_row():
     """The planner's rows are read by column (each a contiguous array) when the schedule is
     finished: the same values as the table by row; a selection of rows that are the first

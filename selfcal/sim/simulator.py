@@ -105,8 +105,8 @@ class PoseTable:
         Mean and per-axis sd of the reported acceleration.
     temp_c : ndarray, shape (m,), degC
         Mean reported temperature.
-    pressure_kpa : ndarray, shape (m, 4), kPa
-        Mean pressure per channel.
+    pressure_kpa : ndarray, shape (m, 4), kPa, or None
+        Mean pressure per channel (None when :meth:`Simulation.poses` was asked without).
     a_true_g : ndarray, shape (m, 3), g
         True mean specific force (foot frame).
     temp_true_c : ndarray, shape (m,), degC
@@ -123,7 +123,7 @@ class PoseTable:
     mean_g: np.ndarray
     sd_g: np.ndarray
     temp_c: np.ndarray
-    pressure_kpa: np.ndarray
+    pressure_kpa: np.ndarray | None
     a_true_g: np.ndarray
     temp_true_c: np.ndarray
     activity: np.ndarray
@@ -323,7 +323,7 @@ class Simulation:
         return SampleChunk.concatenate(list(self.iter_samples()))
 
     # -------------------------------------------------------------------- poses
-    def poses(self) -> PoseTable:
+    def poses(self, pressure: bool = True) -> PoseTable:
         """Still windows directly, without per-sample data.
 
         Every still period of the schedule (the same as the sample stream's) is cut
@@ -333,6 +333,10 @@ class Simulation:
         temperature and mid time, plus the noise of a mean of ``n`` samples (white
         sensor noise and the low-pass sway); its sd is the per-sample sd with a
         chi-square sampling spread.
+
+        ``pressure=False`` leaves the pressure channels out (``pressure_kpa`` is None): a
+        replay feeds none of them, and a year's are 13 M draws and 0.1 GB. They are the
+        last draws of the windows' own generator, so every other column is the same.
 
         Returns
         -------
@@ -376,7 +380,7 @@ class Simulation:
         mean_g = standard_normal(rng, (m, 3))
         sd_g = rng.chisquare(np.broadcast_to(dof[:, None].astype(float), (m, 3)))
         temp_rep = standard_normal(rng, m)
-        press = standard_normal(rng, (m, 4))
+        press = standard_normal(rng, (m, 4)) if pressure else None
         sway = s.sd_g[seg0]
         alpha = np.exp(-2 * np.pi * cfg.posture.sway_corner_hz / rate)
         corr = (1 + alpha) / (1 - alpha)
@@ -400,10 +404,11 @@ class Simulation:
             chi *= sd_true
             temp_rep[b] *= tc.noise_sd_c / root_n
             temp_rep[b] += temp_true[b]
-            p = press[b]
-            p *= (pc.noise_kpa / root_n)[:, None]
-            p += s.load[seg0[b]] * s.stand_kpa + pc.offset_kpa
-            np.maximum(p, 0.0, out=p)
+            if press is not None:
+                p = press[b]
+                p *= (pc.noise_kpa / root_n)[:, None]
+                p += s.load[seg0[b]] * s.stand_kpa + pc.offset_kpa
+                np.maximum(p, 0.0, out=p)
         return PoseTable(
             t_s=t_start, duration_s=dur, n=n_recv.astype(np.int64), mean_g=mean_g, sd_g=sd_g,
             temp_c=temp_rep, pressure_kpa=press, a_true_g=a_true, temp_true_c=temp_true,
