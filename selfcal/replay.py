@@ -323,7 +323,8 @@ def replay(
     t0_wall = time.perf_counter()
     base_name = ErrorModel(model).base
     last_cal = cal.calibration()
-    sample_iter = sim.iter_samples(chunk_s=3600) if level == "samples" else None
+    # (the calibrators take what a device sends: the truth columns are not streamed)
+    sample_iter = sim.iter_samples(chunk_s=3600, truth=False) if level == "samples" else None
     # resumed: the periods done took every chunk that starts before their end; the
     # simulation streams them again from its start, and they are not fed twice
     fed_until_s = done_until * SECONDS_PER_DAY

@@ -294,8 +294,8 @@ def test_the_samples_level_does_not_depend_on_how_the_simulator_chunks_its_strea
     hourly = replay(**kw)
     real = Simulation.iter_samples
 
-    def five_hours(self, chunk_s=None, progress=False):
-        chunks = list(real(self, chunk_s=chunk_s))  # (the simulator's draws depend on its chunks)
+    def five_hours(self, chunk_s=None, progress=False, truth=True):
+        chunks = list(real(self, chunk_s=chunk_s, truth=truth))  # (the simulator's draws depend on its chunks)
         for i in range(0, len(chunks), 5):  # (5 h: a chunk around each 6-h period's end)
             yield SampleChunk.concatenate(chunks[i:i + 5])
 

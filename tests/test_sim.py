@@ -437,6 +437,25 @@ def test_poses_without_pressure_keep_every_other_column_bit_for_bit():
                 assert a.dtype == b.dtype and np.array_equal(a, b) and np.array_equal(np.signbit(a), np.signbit(b)), f.name
 
 
+def test_a_stream_without_its_truth_sends_the_same_values():
+    """A samples-level replay streams what a device sends, without the truth columns: the
+    same chunks, rows and values bit for bit; the truth is None, and stays None when such
+    chunks are split and joined."""
+    sims = [Simulation(SimConfig(), np.random.default_rng(8), days=0.3, seed=8) for _ in range(2)]
+    full = list(sims[0].iter_samples(chunk_s=1800))
+    lean = list(sims[1].iter_samples(chunk_s=1800, truth=False))
+    assert len(full) == len(lean) > 3
+    for a, b in zip(full, lean):
+        for name in ("t_s", "acc_g", "temp_c", "pressure_kpa"):
+            x, y = getattr(a, name), getattr(b, name)
+            assert x.dtype == y.dtype and np.array_equal(x, y) and np.array_equal(np.signbit(x), np.signbit(y)), name
+        assert b.a_true_g is None and b.index is None and b.still is None and a.index is not None
+    head, tail = lean[1].split(float(lean[1].t_s[len(lean[1]) // 2]))
+    joined = type(head).concatenate([head, tail])
+    assert 0 < len(head) < len(lean[1]) and tail.activity is None and np.array_equal(joined.acc_g, lean[1].acc_g)
+    assert joined.temp_true_c is None
+
+
 def test_the_schedule_table_by_column_is_the_table_by_row():
     """The planner's rows are read by column (each a contiguous array) when the schedule is
     finished: the same values as the table by row; a selection of rows that are the first

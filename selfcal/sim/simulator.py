@@ -61,17 +61,20 @@ class SampleChunk:
         True still moment (a STILL segment).
     index : ndarray of int64, shape (n,)
         Sample index before packet loss (``t_s = index / rate_hz``).
+
+    The truth (``a_true_g``, ``temp_true_c``, ``activity``, ``still``, ``index``) is None
+    in a chunk streamed without it (:meth:`Simulation.iter_samples` ``truth=False``).
     """
 
     t_s: np.ndarray
     acc_g: np.ndarray
     temp_c: np.ndarray
     pressure_kpa: np.ndarray
-    a_true_g: np.ndarray
-    temp_true_c: np.ndarray
-    activity: np.ndarray
-    still: np.ndarray
-    index: np.ndarray
+    a_true_g: np.ndarray | None
+    temp_true_c: np.ndarray | None
+    activity: np.ndarray | None
+    still: np.ndarray | None
+    index: np.ndarray | None
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -80,14 +83,16 @@ class SampleChunk:
         """The rows before ``t_s`` (s) and the rows from it on (``t_s`` ascending)."""
         k = int(np.searchsorted(self.t_s, t_s, side="left"))
         names = SampleChunk.__dataclass_fields__
-        return (SampleChunk(**{n: getattr(self, n)[:k] for n in names}),
-                SampleChunk(**{n: getattr(self, n)[k:] for n in names}))
+        cols = {n: getattr(self, n) for n in names}
+        return (SampleChunk(**{n: None if v is None else v[:k] for n, v in cols.items()}),
+                SampleChunk(**{n: None if v is None else v[k:] for n, v in cols.items()}))
 
     @staticmethod
     def concatenate(chunks: list["SampleChunk"]) -> "SampleChunk":
-        """Join chunks in order."""
+        """Join chunks in order (a column None in any of them is None)."""
         names = SampleChunk.__dataclass_fields__
-        return SampleChunk(**{k: np.concatenate([getattr(c, k) for c in chunks]) for k in names})
+        cols = {k: [getattr(c, k) for c in chunks] for k in names}
+        return SampleChunk(**{k: None if any(v is None for v in vs) else np.concatenate(vs) for k, vs in cols.items()})
 
 
 @dataclass
@@ -230,7 +235,8 @@ class Simulation:
         edges = np.r_[0, cuts, len(s)]
         return list(zip(edges[:-1].tolist(), edges[1:].tolist()))
 
-    def iter_samples(self, chunk_s: float | None = None, progress: bool = False) -> Iterator[SampleChunk]:
+    def iter_samples(self, chunk_s: float | None = None, progress: bool = False,
+                     truth: bool = True) -> Iterator[SampleChunk]:
         """Stream the whole wear period as :class:`SampleChunk` blocks.
 
         Parameters
@@ -240,6 +246,9 @@ class Simulation:
             Default ``config.chunk_s`` (1 h).
         progress : bool
             Show a tqdm bar on stderr.
+        truth : bool
+            False leaves the truth columns out (None): what a device would send, the same
+            values, without taking the received rows of five more columns.
 
         Yields
         ------
@@ -256,9 +265,9 @@ class Simulation:
             it = tqdm(bounds, unit="chunk", desc="simulate", leave=False)
         carry = {"next_packet": 0}
         for a, b in it:
-            yield self._chunk(a, b, rngs, carry)
+            yield self._chunk(a, b, rngs, carry, truth)
 
-    def _chunk(self, a: int, b: int, rngs: dict, carry: dict) -> SampleChunk:
+    def _chunk(self, a: int, b: int, rngs: dict, carry: dict, truth: bool = True) -> SampleChunk:
         s, cfg, rate = self.schedule, self.config, self.rate_hz
         counts = s.n[a:b]
         i0 = int(s.start[a])
@@ -270,7 +279,6 @@ class Simulation:
         f_axes = np.repeat(gravity_foot(s.pitch0[a:b], s.roll0[a:b]).T, counts, axis=1)
         motion = s.motion[a:b]
         phase = np.full(total, np.nan)
-        still_mask = np.repeat(motion == STILL, counts)
         sway = np.repeat(np.where(motion == STILL, s.sd_g[a:b], 0.0), counts)
         swaying = np.flatnonzero(sway > 0)  # rows by integer index: the same values, faster than a mask
         if len(swaying):
@@ -312,10 +320,13 @@ class Simulation:
         def rows(x: np.ndarray) -> np.ndarray:
             return np.compress(keep, x, axis=0) if x.flags.c_contiguous else np.ascontiguousarray(x[keep])
 
+        if not truth:
+            return SampleChunk(t_s=t_s[keep], acc_g=rows(raw), temp_c=temp_rep[keep], pressure_kpa=rows(press),
+                               a_true_g=None, temp_true_c=None, activity=None, still=None, index=None)
         return SampleChunk(
             t_s=t_s[keep], acc_g=rows(raw), temp_c=temp_rep[keep], pressure_kpa=rows(press),
             a_true_g=rows(f), temp_true_c=temp_true[keep], activity=np.repeat(s.activity[a:b], counts)[keep],
-            still=still_mask[keep], index=index[keep],
+            still=np.repeat(motion == STILL, counts)[keep], index=index[keep],
         )
 
     def samples(self) -> SampleChunk:
