@@ -199,6 +199,15 @@ class _Builder:
             bigger[:, :self._n] = self._cols[:, :self._n]
             self._cols = bigger
 
+    def reserve_until(self, t_end_s: float) -> None:
+        """Room for the rows up to ``t_end_s`` (s) at the rate planned so far and a quarter
+        more (never touched unless filled), at most :data:`_RESERVE_MAX_ROWS`: a long plan
+        is not copied through a dozen doublings."""
+        if self.t <= 0 or t_end_s <= self.t:
+            return
+        planned = self._n + len(self.rows)
+        self.reserve(min(int(1.25 * planned / self.t * (t_end_s - self.t)) + 4096, _RESERVE_MAX_ROWS))
+
     def _flush(self) -> None:
         """The rows planned in Python, into the buffer."""
         if self.rows:
@@ -522,10 +531,8 @@ def make_schedule(config: SimConfig, rng: np.random.Generator, days: float, rate
         next_ws = day0 + SECONDS_PER_DAY + 3600 * dc.wear_start_h
         b.off(max(next_ws - b.t, 600.0))
         d += 1
-        if d == 1 and b.t < total_s:
-            # room for the rest at the first day's rate and a quarter more (never touched
-            # unless filled), not a year's plan copied through a dozen doublings
-            b.reserve(min(int(1.25 * (b._n + len(b.rows)) / b.t * (total_s - b.t)) + 4096, _RESERVE_MAX_ROWS))
+        if d == 1:
+            b.reserve_until(total_s)  # at the first day's rate
     return _finish(b, config, rate, total_s, day_draws)
 
 
