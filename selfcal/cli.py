@@ -15,6 +15,7 @@ import sys
 
 from pydantic import ValidationError
 
+from selfcal.blas_threads import one_blas_thread
 from selfcal.errors import InputError, SelfcalError
 
 #: Sub-commands in help order: name -> one-line help.
@@ -60,6 +61,9 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    # small matrices: OpenBLAS's extra threads only busy-wait beside the server, workers or
+    # other replays (selfcal.blas_threads); a count set in the environment is kept
+    one_blas_thread()
     try:
         code = int(args._run(args) or 0)
         sys.stdout.flush()

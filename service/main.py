@@ -28,6 +28,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 from starlette.responses import PlainTextResponse, Response
 
+from selfcal.blas_threads import one_blas_thread
 from selfcal.errors import InputError
 from selfcal_service.auth import AuthError, KeyRing
 from selfcal_service.gc_policy import Refreezer
@@ -508,6 +509,9 @@ def create_app(
         # CPU-bound refit threads hold the GIL for up to the switch interval (5 ms by
         # default) before the event loop can answer a GET: shorten it (process-wide).
         sys.setswitchinterval(settings.gil_switch_interval_s)
+        # the refits' matrices are small: OpenBLAS's extra threads would only busy-wait
+        # beside the request threads (process-wide; a count set in the environment is kept)
+        one_blas_thread()
         st = store or open_store(settings)
         if not settings.refit_in_process and isinstance(st, SQLiteStore):
             raise InputError("refit_in_process = false needs a PostgreSQL database (SQLite has one process, "
