@@ -5,7 +5,7 @@ Runs the same replay (one device, the poses level) in fresh processes, alternati
 OpenBLAS's default of a thread per core. It does so alone, and beside a process that keeps
 one core busy, as a server's request threads or another worker would. Printed, per
 condition: the median wall time, the CPU time of the replay's process, and the wall
-time of its calibrators' refits (the ``protocol`` stage). Also printed: whether the
+time of its two calibrators (the ``protocol`` and ``as_shipped`` stages). Also printed: whether the
 results were the same in every run (a hash of the refits' rows).
 
     python bench/blas_threads.py [--days 120] [--rounds 3]

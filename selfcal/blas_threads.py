@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import os
 
+from threadpoolctl import threadpool_limits
+
 #: The variables through which a user chooses a BLAS thread count. If one of them is set,
 #: it is kept.
 THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS", "OMP_NUM_THREADS")
@@ -49,16 +51,11 @@ def one_blas_thread() -> bool:
     * the variables of :data:`SET_VARIABLES` are set, so that a library loaded later reads
       them at its start, and so that a child process inherits them.
 
-    Returns True if it set one thread, and False if it kept the user's choice. Without
-    ``threadpoolctl`` it does the second step only.
+    Returns True if it set one thread, and False if it kept the user's choice.
     """
     if user_thread_count() is not None:
         return False
     for name in SET_VARIABLES:
         os.environ[name] = "1"
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # a core dependency; only a broken install lacks it
-        return True
     threadpool_limits(limits=1, user_api="blas")  # process-wide, until the process ends
     return True

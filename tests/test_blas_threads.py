@@ -28,6 +28,11 @@ def no_thread_variables(monkeypatch):
         monkeypatch.delenv(name, raising=False)
 
 
+def env_without_thread_variables() -> dict[str, str]:
+    """This process's environment without any BLAS thread count (a fresh process's default)."""
+    return {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
+
+
 def two_threads_or_skip() -> None:
     if blas_threads() != [2] * len(blas_threads()) or not blas_threads():
         pytest.skip("the BLAS library here cannot run 2 threads (one core?)")
@@ -66,9 +71,8 @@ sys.exit(main(["simulate", "--seed", "1", "--out", "unused"]))
 
 
 def run_probe(env_extra: dict[str, str]) -> dict:
-    env = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
     q = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, timeout=120,
-                       env={**env, **env_extra})
+                       env={**env_without_thread_variables(), **env_extra})
     assert q.returncode == 0, q.stderr
     return json.loads(q.stdout.strip().splitlines()[-1])
 
@@ -80,9 +84,9 @@ def test_the_command_line_runs_its_commands_with_one_blas_thread():
 
 
 def test_the_command_line_keeps_a_count_set_in_the_environment():
-    got = run_probe({"OPENBLAS_NUM_THREADS": "2"})
     if os.cpu_count() and os.cpu_count() < 2:
         pytest.skip("one core: OpenBLAS runs one thread whatever is asked")
+    got = run_probe({"OPENBLAS_NUM_THREADS": "2"})
     assert got == {"threads": [2] * len(got["threads"]), "env": "2"} and got["threads"]
 
 
@@ -108,9 +112,8 @@ with TestClient(create_app(settings)) as client:
 def test_the_service_sets_one_blas_thread_when_it_starts(tmp_path):
     if not os.cpu_count() or os.cpu_count() < 2:
         pytest.skip("one core: OpenBLAS runs one thread anyway")
-    env = {k: v for k, v in os.environ.items() if k not in THREAD_VARIABLES}
     q = subprocess.run([sys.executable, "-c", _SERVICE_PROBE, str(tmp_path / "s.db")], capture_output=True,
-                       text=True, timeout=120, env=env)
+                       text=True, timeout=120, env=env_without_thread_variables())
     assert q.returncode == 0, q.stderr
     got = json.loads(q.stdout.strip().splitlines()[-1])
     assert got["before"] and all(n >= 2 for n in got["before"])
