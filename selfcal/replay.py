@@ -545,7 +545,7 @@ def check_engine(engine: str) -> None:
     if engine == "dask" and importlib.util.find_spec("distributed") is None:
         raise InputError("--engine dask needs dask's distributed scheduler (pip install 'selfcal[fleet]')")
     if engine == "ray" and importlib.util.find_spec("ray") is None:
-        raise InputError("--engine ray needs ray (pip install ray); it is not part of selfcal's extras")
+        raise InputError("--engine ray needs ray (pip install 'selfcal[ray]')")
 
 
 def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: bool = False, *,
@@ -554,7 +554,8 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
 
     ``engine``: ``processes`` (a local process pool, the default), ``dask`` (a
     ``distributed`` cluster: the one at ``scheduler`` address, else a local cluster of
-    ``workers`` single-threaded worker processes) or ``ray`` (``ray.init(address=scheduler)``).
+    ``workers`` single-threaded worker processes) or ``ray`` (the Ray cluster at ``scheduler``,
+    else a local Ray of ``workers`` CPUs; extra ``ray``).
     Each device's replay is the same function with the same seed on every engine, so
     the results are identical (only the wall times ``wall_s``, ``stage_s`` and
     ``fit_ms`` differ). Returns the results in seed
@@ -580,7 +581,7 @@ def replay_fleet(devices: int, seed: int, workers: int | None = None, progress: 
     if engine == "dask":
         _run_dask(jobs, workers, scheduler, done)
     elif engine == "ray":
-        _run_ray(jobs, scheduler, done)
+        _run_ray(jobs, workers, scheduler, done)
     elif workers <= 1:
         for i, job in enumerate(jobs):
             done(i, _replay_one(job))
@@ -653,14 +654,20 @@ def local_dask_cluster(workers: int):
                             dashboard_address=None, silence_logs=40)
 
 
-def _run_ray(jobs: list[dict], scheduler: str | None, done) -> None:
-    """Run the jobs as Ray tasks (``ray.init(address=scheduler)``; a local Ray without it)."""
+def _run_ray(jobs: list[dict], workers: int, scheduler: str | None, done) -> None:
+    """Run the jobs as Ray tasks, one CPU each: on the cluster at ``scheduler``
+    (``ray.init(address=...)``), in the Ray this process already joined, or else on a local
+    Ray of ``workers`` CPUs, which is shut down when the jobs are done (as a local Dask
+    cluster is)."""
     try:
         import ray
     except ImportError:
-        raise InputError("--engine ray needs ray (pip install ray); it is not part of selfcal's extras") from None
-    ray.init(address=scheduler, ignore_reinit_error=True, log_to_driver=False)
-    remote = ray.remote(_replay_one)
+        raise InputError("--engine ray needs ray (pip install 'selfcal[ray]')") from None
+    started = not ray.is_initialized()
+    if started:
+        local = {} if scheduler else {"num_cpus": workers, "include_dashboard": False}
+        ray.init(address=scheduler, log_to_driver=False, **local)
+    remote = ray.remote(num_cpus=1)(_replay_one)
     refs = [remote.remote(job) for job in jobs]
     index = {r: i for i, r in enumerate(refs)}
     pending = list(refs)
@@ -673,6 +680,9 @@ def _run_ray(jobs: list[dict], scheduler: str | None, done) -> None:
         for r in pending:
             ray.cancel(r)
         raise
+    finally:
+        if started:
+            ray.shutdown()
 
 
 def replay_recording(

@@ -181,6 +181,22 @@ def test_fleet_replay_is_identical_on_the_process_pool_and_on_dask():
     assert _without_timings(dask) == _without_timings(local)
 
 
+def test_fleet_replay_is_identical_on_the_process_pool_and_on_a_local_ray():
+    """Ray (extra ``ray``, not in dev: runs where it is installed) gives the process pool's
+    results, on a local Ray of ``workers`` CPUs that is shut down afterwards."""
+    ray = pytest.importorskip("ray")
+    from selfcal.config import load_config
+    from selfcal.replay import replay_fleet
+
+    kw = dict(days=2.0, refit_every_days=1.0, config=load_config())
+    local = replay_fleet(3, seed=11, workers=2, engine="processes", **kw)
+    assert not ray.is_initialized()
+    on_ray = replay_fleet(3, seed=11, workers=2, engine="ray", **kw)
+    assert not ray.is_initialized()  # the local Ray it started is gone
+    assert [r["seed"] for r in on_ray] == [11, 12, 13]
+    assert _without_timings(on_ray) == _without_timings(local)
+
+
 def test_unknown_or_missing_engine_is_a_clear_error(capsys):
     from selfcal.cli import main
 
