@@ -421,14 +421,21 @@ class OnlineCalibrator:
                 return self._refuse(t_now, "insufficient_coverage", str(exc))
         fit.extra["noise_scale"] = {"cell_floor_g": float(cfg.sigma_floor_g), "cell_noise_factor": float(c_noise)}
         self._fit_cfg_now = cfg
-        decision = self._guard(fit, data, usable, prior)
-        if not decision.publish:
-            return self._refuse(t_now, decision.reason, decision.message, fit, decision)
-        cal = self._describe(fit, t_now, n_cells, decision)
+        screened = self._screen(fit)
+        if screened is not None:
+            return self._refuse(t_now, screened.reason, screened.message, fit, screened)
+        # a candidate the publish rule holds back (no significant change: most refits) is
+        # refused before its held-out refit, which only decides whether a candidate that
+        # would be published may be: the same versions, one robust fit fewer a held refit
+        cal = self._describe(fit, t_now, n_cells, GuardDecision(True, None, ""))
         self._check_recent(cal, fit, data, usable)
         hold = self._hold(fit, cal, t_now, final)
         if hold:
-            return self._refuse(t_now, "no_significant_change", hold, fit, decision)
+            return self._refuse(t_now, "no_significant_change", hold, fit)
+        decision = self._heldout(fit, data, usable, prior)
+        if not decision.publish:
+            return self._refuse(t_now, decision.reason, decision.message, fit, decision)
+        cal["heldout_rms_mg"] = decision.heldout_rms_mg_new
         return self._publish(t_now, fit, cal, decision)
 
     def _pose_data(self, mask: np.ndarray, t_now: float) -> PoseData:
@@ -814,7 +821,9 @@ class OnlineCalibrator:
         return self._publish_change(fit, cfg, c_noise, t_now, n_cells, message, record, "model_change",
                                     "model_switch")
 
-    def _guard(self, fit: FitResult, data: PoseData, usable: np.ndarray, prior: Prior) -> GuardDecision:
+    def _screen(self, fit: FitResult) -> GuardDecision | None:
+        """The guard's checks of the fit alone (converged, plausible parameters and
+        residuals, a determined direction for a first version): the refusal, or None."""
         g = self.guard_cfg
         if not fit.success:
             return GuardDecision(False, "not_converged", f"LM did not converge: {fit.message}")
@@ -828,6 +837,13 @@ class OnlineCalibrator:
                 False, "implausible", f"fit residual RMS {rms_in:.2f} mg exceeds {g.max_residual_rms_mg} mg")
         if self.current is None and fit.n_determined_directions < g.min_determined:
             return GuardDecision(False, "insufficient_coverage", "the poses determine no parameter direction")
+        return None
+
+    def _heldout(self, fit: FitResult, data: PoseData, usable: np.ndarray, prior: Prior) -> GuardDecision:
+        """The guard's held-out comparison: the candidate refitted without one fold of the
+        cells that came after the published model, and that fold's clipped RMS against
+        the published model's (a robust fit: the costly half of the guard)."""
+        g = self.guard_cfg
         # held out: one fold (rotating), and only cells that appeared after the published
         # model was fitted, so that neither model has seen them
         fold = self.n_refits % self.pose_cfg.folds

@@ -425,3 +425,54 @@ def test_a_corrupt_or_mismatched_state_is_refused_at_load_naming_what_is_wrong()
                       "another \\[poses\\] config|corrupt")):
         with pytest.raises(InputError, match=why):
             OnlineCalibrator.from_json(bad)
+
+
+class _HeldOutFirst(OnlineCalibrator):
+    """The refit's order before 2026-12-02: the guard's held-out refit for every candidate
+    that passed the screen, then the publish rule. (The held-out comparison reads the
+    store, the published model and the refit count, none of which the description or the
+    recent-cells check changes, so running it at the publish rule gives that order's
+    outcomes.)"""
+
+    heldout_calls = 0
+
+    def _check_recent(self, cal, fit, data, usable):
+        self._args = (data, usable)
+        super()._check_recent(cal, fit, data, usable)
+
+    def _hold(self, fit, cal, t_now, final=False):
+        self.heldout_calls += 1
+        decision = self._heldout(fit, *self._args, self.prior())
+        if not decision.publish:
+            return decision.message
+        return super()._hold(fit, cal, t_now, final)
+
+
+@pytest.mark.parametrize("seed", [100, 103])
+def test_a_candidate_the_publish_rule_holds_is_refused_before_its_held_out_refit(monkeypatch, seed):
+    """Most refits of a worn insole change nothing significant. They are refused before the
+    guard's held-out refit (a robust fit), which only decides whether a candidate the
+    publish rule lets through may be published: the same versions, bit for bit, as
+    when every candidate was refitted held out first, with far fewer held-out refits."""
+    from selfcal.config import load_config, section
+    from selfcal.sim import SimConfig, Simulation
+
+    cfg = load_config()
+    sim = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(seed), days=2.5, seed=seed)
+    p = sim.poses(pressure=False)
+    keep = np.all(p.sd_g <= 0.010, axis=1)
+    args = (p.mean_g[keep], p.sd_g[keep], p.n[keep], p.t_s[keep] + p.duration_s[keep] / 2, p.temp_c[keep])
+    now, before = OnlineCalibrator(cfg), _HeldOutFirst(cfg)
+    calls = []
+    real = OnlineCalibrator._heldout
+    monkeypatch.setattr(OnlineCalibrator, "_heldout", lambda self, *a: calls.append(self) or real(self, *a))
+    events_now, events_before = now.feed_poses(*args), before.feed_poses(*args)
+    held = [e for e in events_now if e["reason"] == "no_significant_change"]
+    assert len(held) >= 10 and len(events_now) == len(events_before)
+    versions = [_strip_timing(e["calibration"]) for e in events_now if e["published"]]
+    assert versions and versions == [_strip_timing(e["calibration"]) for e in events_before if e["published"]]
+    assert _strip_timing(json.loads(now.to_json())["current"]) == _strip_timing(json.loads(before.to_json())["current"])
+    # the held-out refit ran for the candidates the rule let through, and no other
+    ran_now = sum(1 for c in calls if c is now)
+    assert ran_now == sum(1 for e in events_now if e["published"] or e["reason"] == "worse_than_current")
+    assert ran_now + len(held) <= before.heldout_calls
