@@ -290,7 +290,7 @@ class OnlineCalibrator:
         t_mid = 0.5 * (np.asarray(w.t_start_s) + np.asarray(w.t_end_s))
         return self.feed_poses(w.mean_g, w.sd_g, w.n, t_mid, w.temp_c)
 
-    def feed_poses(self, mean_g, sd_g, n, t_s, temp_c=None) -> list[dict]:
+    def feed_poses(self, mean_g, sd_g, n, t_s, temp_c=None, until=None) -> list[dict]:
         """Feed still poses directly (a poses table); returns the refit outcomes.
 
         Poses are taken in time order, and the scheduler may refit between them, so
@@ -302,6 +302,9 @@ class OnlineCalibrator:
         n : ndarray, shape (k,) — samples per window
         t_s : ndarray, shape (k,), s — window centre times
         temp_c : ndarray, shape (k,), degC, optional
+        until : callable (outcome dict) -> bool, optional — stop after the first refit
+            outcome it is true of: the poses after that refit are not fed (the calibrator
+            is then as if the table had ended there)
         """
         mean_g = np.atleast_2d(np.asarray(mean_g, dtype=float))
         k = mean_g.shape[0]
@@ -327,6 +330,8 @@ class OnlineCalibrator:
                 self.t_last_s = max(self.t_last_s if self.t_last_s is not None else -np.inf, stats["t_max"])
             if self._due():
                 events.append(self.refit())
+                if until is not None and until(events[-1]):
+                    break
             i = j
         return events
 

@@ -149,26 +149,29 @@ def _protocol_config(config: dict, refit_every_days: float) -> dict:
     return cfg
 
 
-#: poses fed at a time to the as-shipped calibrator, which is only timed to 'calibrated'
-TIMED_PIECE_POSES = 256
+def _calibrated(ev: dict) -> bool:
+    return bool(ev["published"] and ev["calibration"]["status"] == "calibrated")
 
 
-def first_calibrated_h_of(cal: OnlineCalibrator, mean_g, sd_g, n, t_s, temp_c, piece: int = TIMED_PIECE_POSES) -> float | None:
-    """Feed poses to ``cal`` in order, ``piece`` at a time, until a refit publishes
-    ``calibrated``; the time of that refit (h), or None if none did.
+def first_calibrated_h_of(cal: OnlineCalibrator, mean_g, sd_g, n, t_s, temp_c, piece: int | None = None) -> float | None:
+    """Feed poses to ``cal`` in order until a refit publishes ``calibrated``; the time of
+    that refit (h), or None if none did.
 
-    A calibrator's outcomes do not depend on how its poses are split into calls, so
-    stopping at the first piece that publishes ``calibrated`` gives the time that
-    feeding them all would, without the refits that come after it (which nothing reads).
+    The poses go in one call that stops at that refit (``feed_poses(until=...)``), so the
+    refits after it, which nothing reads, are not made. ``piece``: feed them that many at
+    a time instead (the same hour: a calibrator's outcomes do not depend on how its poses
+    are split into calls; pieces of 256 were the replay's way before ``until``, and cost
+    an add to the pose store each).
 
     Parameters
     ----------
     mean_g, sd_g : ndarray, shape (k, 3), g; n : (k,) samples; t_s : (k,) s; temp_c : (k,) degC
     """
-    for i in range(0, len(t_s), piece):
-        sl = slice(i, i + piece)
-        for ev in cal.feed_poses(mean_g[sl], sd_g[sl], n[sl], t_s[sl], temp_c[sl]):
-            if ev["published"] and ev["calibration"]["status"] == "calibrated":
+    step = len(t_s) if piece is None else int(piece)
+    for i in range(0, len(t_s), max(step, 1)):
+        sl = slice(i, i + max(step, 1))
+        for ev in cal.feed_poses(mean_g[sl], sd_g[sl], n[sl], t_s[sl], temp_c[sl], until=_calibrated):
+            if _calibrated(ev):
                 return float(ev["t_s"]) / 3600.0
     return None
 

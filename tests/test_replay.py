@@ -247,9 +247,15 @@ def test_the_time_to_calibrated_does_not_depend_on_the_pieces_the_timed_calibrat
     keep = np.all(p.sd_g <= 0.010, axis=1) & (p.t_s < 3 * 86400.0)  # the replay's first period
     args = (p.mean_g[keep], p.sd_g[keep], p.n[keep], (p.t_s + p.duration_s / 2)[keep], p.temp_c[keep])
     hours = {piece: first_calibrated_h_of(OnlineCalibrator(cfg, "affine9"), *args, piece=piece)
-             for piece in (len(args[3]), 97, 256)}
-    assert hours[len(args[3])] is not None and 0 < hours[len(args[3])] < 72
-    assert hours[97] == hours[256] == hours[len(args[3])]
+             for piece in (None, len(args[3]), 97, 256)}
+    assert hours[None] is not None and 0 < hours[None] < 72
+    assert hours[97] == hours[256] == hours[len(args[3])] == hours[None]
+    # the refits after the first 'calibrated' are not made: one call stops there
+    cal = OnlineCalibrator(cfg, "affine9")
+    events = cal.feed_poses(*args, until=lambda ev: ev["published"] and ev["calibration"]["status"] == "calibrated")
+    assert events[-1]["calibration"]["status"] == "calibrated" and events[-1]["t_s"] / 3600.0 == hours[None]
+    assert sum(e["published"] and e["calibration"]["status"] == "calibrated" for e in events) == 1
+    assert cal.t_last_s <= events[-1]["t_s"] < args[3][-1]
 
 
 def test_a_checkpoint_of_another_run_or_no_checkpoint_at_all_is_refused_and_kept(tmp_path):
