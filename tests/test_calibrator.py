@@ -476,3 +476,28 @@ def test_a_candidate_the_publish_rule_holds_is_refused_before_its_held_out_refit
     ran_now = sum(1 for c in calls if c is now)
     assert ran_now == sum(1 for e in events_now if e["published"] or e["reason"] == "worse_than_current")
     assert ran_now + len(held) <= before.heldout_calls
+
+
+def test_a_candidate_the_publish_rule_lets_through_is_still_refused_when_worse_on_held_out_cells():
+    """The held-out comparison still guards every candidate that would be published: with
+    a guard that finds any candidate worse than the published model (no tolerance, and
+    more), the first refit that had been published after a held-out comparison is refused
+    as worse_than_current instead."""
+    from selfcal.config import load_config, section
+    from selfcal.sim import SimConfig, Simulation
+
+    cfg = load_config()
+    sim = Simulation(SimConfig.from_section(section(cfg, "sim")), np.random.default_rng(7), days=1.0, seed=7)
+    p = sim.poses(pressure=False)
+    keep = np.all(p.sd_g <= 0.010, axis=1)
+    args = (p.mean_g[keep], p.sd_g[keep], p.n[keep], p.t_s[keep] + p.duration_s[keep] / 2, p.temp_c[keep])
+    compared = [e for e in OnlineCalibrator(cfg).feed_poses(*args)
+                if e["published"] and e["heldout_rms_mg_current"] is not None]
+    assert compared
+    strict = OnlineCalibrator(cfg)
+    # (below the config's floor of 0: a test-only guard that refuses any comparison)
+    strict.guard_cfg = strict.guard_cfg.model_copy(update={"tolerance_rel": -0.999, "tolerance_mg": 0.0})
+    events = {e["t_s"]: e for e in strict.feed_poses(*args)}
+    first = events[compared[0]["t_s"]]
+    assert not first["published"] and first["reason"] == "worse_than_current"
+    assert first["heldout_rms_mg_new"] == compared[0]["heldout_rms_mg_new"]
